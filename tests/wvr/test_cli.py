@@ -1,0 +1,61 @@
+"""The `wvr` command: help, kinematics subcommands, clear errors, and the demo's report."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import pytest
+
+from wvr.cli import main
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "wvr", *args], capture_output=True, text=True)
+
+
+def test_help_lists_subcommands():
+    r = run("--help")
+    assert r.returncode == 0
+    assert "kinematics" in r.stdout and "demo" in r.stdout
+    r = run("kinematics", "--help")
+    for sub in ("show", "mjcf", "ik", "picture"):
+        assert sub in r.stdout
+
+
+def test_show_and_mjcf(capsys):
+    assert main(["kinematics", "show", "reference", "--directions", "200"]) == 0
+    assert "Radii of rotation" in capsys.readouterr().out
+    assert main(["kinematics", "mjcf", "reference"]) == 0
+    model = mujoco.MjModel.from_xml_string(capsys.readouterr().out)
+    assert model.njnt == 3 and model.ncam == 1
+
+
+def test_ik_reports_solution_and_refusal(capsys):
+    assert main(["kinematics", "ik", "reference", "--target", "1,0,0"]) == 0
+    assert "q_deg = 0.0000, 0.0000, 0.0000" in capsys.readouterr().out
+    assert main(["kinematics", "ik", "reference", "--target=-1,0.1,0"]) == 1
+    assert "unreachable" in capsys.readouterr().out
+
+
+def test_bad_head_file_is_one_line_and_exit_2(tmp_path):
+    bad = tmp_path / "head.toml"
+    bad.write_text(Path(__file__).parents[2].joinpath("kinematics/data/reference_head.toml").read_text()
+                   .replace('axis = [0.0, 0.0, 1.0]', 'axis = [0.0, 0.0, 2.0]'))
+    r = run("kinematics", "show", str(bad))
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert "joints.pan.axis" in r.stderr and "not a unit vector" in r.stderr
+
+
+@pytest.mark.slow
+def test_demo_writes_a_report_whose_links_exist(tmp_path):
+    assert main(["demo", "--out", str(tmp_path)]) == 0
+    report = (tmp_path / "report.md").read_text()
+    links = re.findall(r"\]\(([^)]+)\)", report)
+    assert links, "the report links its stages' outputs"
+    for link in links:
+        assert (tmp_path / link).exists(), link
+    model = mujoco.MjModel.from_xml_path(str(tmp_path / "kinematics" / "head.xml"))
+    assert model.nu == 3

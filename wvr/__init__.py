@@ -1,0 +1,1 @@
+"""wvr: the application layer. One command (``wvr``) over the packages' APIs, and the demo."""

@@ -1,0 +1,5 @@
+import sys
+
+from wvr.cli import main
+
+sys.exit(main())

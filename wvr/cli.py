@@ -1,0 +1,131 @@
+"""The ``wvr`` command: one subcommand group per package, each a thin wrapper over its API.
+
+Bad input never produces a traceback: the packages raise exceptions whose messages say what is
+wrong and how to fix it, and :func:`main` prints that one line and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from kinematics import HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
+from kinematics.camera import CameraFileError, default_camera, load_camera
+
+USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError)
+
+
+def _vector(text: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not X,Y,Z (three comma-separated numbers, metres)") from None
+    if v.shape != (3,):
+        raise argparse.ArgumentTypeError(f"{text!r} must have three components X,Y,Z")
+    return v
+
+
+def cmd_kinematics_show(args) -> int:
+    from kinematics.summary import summarize, summary_markdown
+
+    head = load_head(args.head)
+    s = summarize(head, n_directions=args.directions)
+    print(json.dumps(s, indent=2) if args.json else summary_markdown(s))
+    return 0
+
+
+def cmd_kinematics_mjcf(args) -> int:
+    from kinematics.mjcf import build_mjcf
+
+    head = load_head(args.head)
+    cam = load_camera(args.camera) if args.camera else default_camera()
+    sys.stdout.write(build_mjcf(head, cam))
+    return 0
+
+
+def cmd_kinematics_ik(args) -> int:
+    head = load_head(args.head)
+    q0 = np.radians(args.current) if args.current is not None else np.zeros(3)
+    solve = gaze_at_point if args.point else gaze_at_direction
+    res = solve(head, args.target, args.up, q_current=q0)
+    if not res.reachable:
+        print(f"unreachable: {res.reason}")
+        return 1
+    for s in res.solutions:
+        print("q_deg = " + ", ".join(f"{v:.4f}" for v in np.degrees(s.q)) + f"   (sigma_min {s.sigma_min:.3f})")
+    if not res.vertical_defined:
+        print("note: target within the zenith cone; cyclotorsion held, image vertical undefined")
+    if res.near_singular:
+        print("warning: near-singular posture; following a moving target here needs large rates")
+    return 0
+
+
+def cmd_kinematics_picture(args) -> int:
+    from kinematics.picture import render_head
+
+    head = load_head(args.head)
+    out = render_head(head, args.out, postures=np.radians(np.array(args.posture)) if args.posture else None)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from wvr.demo import run_demo
+
+    report = run_demo(Path(args.out))
+    print(f"wrote {report}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="wvr",
+        description="wvr: design, place and run an active wearable camera (Mayol, Davison, Tordoff, Murray).",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    kin = sub.add_parser("kinematics", help="the head: chain summary, MJCF model, gaze IK, picture")
+    ksub = kin.add_subparsers(dest="kinematics_command", metavar="SUBCOMMAND", required=True)
+    show = ksub.add_parser("show", help="print the chain, masses, radii, torques and gaze coverage of a head")
+    show.add_argument("head", help="head.toml, or 'reference'")
+    show.add_argument("--json", action="store_true", help="print JSON instead of Markdown")
+    show.add_argument("--directions", type=int, default=2000, help="gaze directions sampled for coverage")
+    show.set_defaults(func=cmd_kinematics_show)
+    mj = ksub.add_parser("mjcf", help="write the head's MJCF model to standard output")
+    mj.add_argument("head", help="head.toml, or 'reference'")
+    mj.add_argument("--camera", help="camera.toml with the intrinsics (default: 640x480, f=514.7 px)")
+    mj.set_defaults(func=cmd_kinematics_mjcf)
+    ik = ksub.add_parser("ik", help="joint angles that fixate a direction or point (mount frame), image upright")
+    ik.add_argument("head", help="head.toml, or 'reference'")
+    ik.add_argument("--target", type=_vector, required=True, help="X,Y,Z direction (or point with --point), mount frame")
+    ik.add_argument("--point", action="store_true", help="the target is a 3D point in metres, not a direction")
+    ik.add_argument("--up", type=_vector, default=np.array([0.0, 0.0, 1.0]), help="world up in the mount frame")
+    ik.add_argument("--current", type=_vector, help="current joint angles, degrees")
+    ik.set_defaults(func=cmd_kinematics_ik)
+    pic = ksub.add_parser("picture", help="render the head to a PNG (offscreen)")
+    pic.add_argument("head", help="head.toml, or 'reference'")
+    pic.add_argument("--out", required=True, help="PNG path")
+    pic.add_argument("--posture", type=_vector, action="append", help="joint angles in degrees (repeatable)")
+    pic.set_defaults(func=cmd_kinematics_picture)
+
+    demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
+    demo.add_argument("--out", required=True, help="output directory")
+    demo.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except USER_ERRORS as e:
+        print(f"wvr: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
