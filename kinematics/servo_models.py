@@ -27,7 +27,9 @@ class ServoModel:
     mass_kg : float
         Mass of the servo body, kg.
     size_m : tuple of 3 floats
-        Box of the servo body (x, y, z edge lengths), metres.
+        Box of the servo body as (length, width, height), metres. The output shaft runs along
+        the height, centred across the width, half a width in from one end of the length (the
+        usual hobby-servo layout); design's layouts place servo boxes by this rule.
     armature_kgm2 : float
         Rotor inertia reflected through the gear train, kg m^2, added to the joint's
         inertia in dynamics and in the MJCF model.

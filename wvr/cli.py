@@ -16,6 +16,7 @@ import numpy as np
 from kinematics import HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
 from kinematics.camera import CameraFileError, default_camera, load_camera
 
+# Every package's bad-input exception derives from ValueError and carries a one-line message.
 USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError)
 
 
@@ -73,6 +74,48 @@ def cmd_kinematics_picture(args) -> int:
     return 0
 
 
+def cmd_design_optimise(args) -> int:
+    from design.report import write_outputs
+    from design.sweep import open_client, run_sweep
+    from design.sweep_file import load_sweep
+
+    spec = load_sweep(args.sweep)
+    out = Path(args.out)
+    client = open_client(args.workers, args.scheduler)
+    try:
+        result = run_sweep(spec, out, evaluations=args.evaluations, seed=args.seed, algorithm=args.algorithm,
+                           resume=args.resume, client=client)
+    finally:
+        if client is not None:
+            client.close()
+    s = write_outputs(result, spec, out)
+    print(f"{s['evaluations']} evaluations ({result.evaluated} computed now, {result.reused} reused), "
+          f"{s['feasible']} feasible, front of {s['front_size']}")
+    if s.get("chosen") is not None or "chosen_index" in s:
+        print(f"chosen head: {out / 'chosen_head.toml'}; report: {out / 'report.md'}")
+    else:
+        print(f"no feasible design; see {out / 'report.md'}")
+    return 0
+
+
+def cmd_design_evaluate(args) -> int:
+    from design.problem import EvaluationContext, score_head
+    from design.sweep_file import load_sweep
+
+    ctx = EvaluationContext.from_spec(load_sweep(args.sweep))
+    crit, cons = score_head(load_head(args.head), ctx)
+    for k, v in {**crit, **cons}.items():
+        print(f"{k:24s} {v:.6g}")
+    return 0
+
+
+def cmd_design_template(args) -> int:
+    from design.sweep_file import default_sweep_text
+
+    sys.stdout.write(default_sweep_text())
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -111,6 +154,26 @@ def build_parser() -> argparse.ArgumentParser:
     pic.add_argument("--out", required=True, help="PNG path")
     pic.add_argument("--posture", type=_vector, action="append", help="joint angles in degrees (repeatable)")
     pic.set_defaults(func=cmd_kinematics_picture)
+
+    des = sub.add_parser("design", help="Pareto optimisation of the head's layout (7 criteria)")
+    dsub = des.add_subparsers(dest="design_command", metavar="SUBCOMMAND", required=True)
+    opt = dsub.add_parser("optimise", help="run (or resume) a design sweep; writes the front and chosen_head.toml")
+    opt.add_argument("--sweep", help="sweep.toml (default: the shipped default sweep; see sweep-template)")
+    opt.add_argument("--out", required=True, help="output directory")
+    opt.add_argument("--evaluations", type=int, help="evaluation budget (default: the sweep file's)")
+    opt.add_argument("--seed", type=int, help="random seed (default: the sweep file's)")
+    opt.add_argument("--algorithm", choices=["nsga3", "random"], help="default: the sweep file's")
+    group = opt.add_mutually_exclusive_group()
+    group.add_argument("--workers", type=int, help="evaluate on a local Dask cluster of N worker processes")
+    group.add_argument("--scheduler", help="evaluate on an existing Dask cluster, e.g. tcp://HOST:8786")
+    opt.add_argument("--resume", action="store_true", help="continue a killed sweep in --out")
+    opt.set_defaults(func=cmd_design_optimise)
+    ev = dsub.add_parser("evaluate", help="print the 7 criteria and the constraints of a head")
+    ev.add_argument("head", help="head.toml, or 'reference'")
+    ev.add_argument("--sweep", help="sweep.toml for the workload and settings (default: the default sweep)")
+    ev.set_defaults(func=cmd_design_evaluate)
+    tpl = dsub.add_parser("sweep-template", help="print the default sweep.toml to start your own")
+    tpl.set_defaults(func=cmd_design_template)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
     demo.add_argument("--out", required=True, help="output directory")

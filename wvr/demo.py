@@ -20,6 +20,42 @@ from kinematics import reference_head, save_head
 from kinematics.camera import default_camera, save_camera
 
 
+def demo_sweep():
+    """The default sweep cut down to a demo budget: 28 reference directions, 6 generations."""
+    from dataclasses import replace
+
+    from design.sweep_file import load_sweep
+
+    spec = load_sweep()
+    return replace(spec, name="demo", evaluations=168, partitions=2,
+                   workload=replace(spec.workload, saccade_amplitudes_deg=(10.0, 40.0), walk_seconds=1.0))
+
+
+def stage_design(out: Path, context: dict) -> str:
+    """A small NSGA-III sweep of the head's layout; its chosen head flows to every later stage."""
+    from design.report import write_outputs
+    from design.sweep import run_sweep
+    from kinematics import load_head
+
+    spec = demo_sweep()
+    result = run_sweep(spec, out, progress=False)
+    s = write_outputs(result, spec, out)
+    rel = out.name
+    if s.get("chosen_index") is None:
+        return f"No feasible design in {s['evaluations']} evaluations; later stages use the reference head."
+    context["head"] = load_head(out / "chosen_head.toml")
+    rows = "\n".join(f"| `{k}` | {v:.4g} | {s['reference_criteria'][k]:.4g} |" for k, v in s["chosen_criteria"].items())
+    return "\n".join([
+        f"NSGA-III over the positions of camera and motors, {s['evaluations']} evaluations: {s['feasible']} feasible, "
+        f"front of {s['front_size']}, hypervolume {s['hypervolume']:.3f} (normalised, Monte Carlo). "
+        f"{s['decision'].capitalize()}.",
+        f"Files: [report.md]({rel}/report.md), [front.csv]({rel}/front.csv), [evaluations.csv]({rel}/evaluations.csv), "
+        f"[chosen_head.toml]({rel}/chosen_head.toml).", "",
+        "| criterion | chosen | reference head |", "|---|---|---|", rows, "",
+        f"![front]({rel}/front_parallel.png)",
+    ])
+
+
 def stage_kinematics(out: Path, context: dict) -> str:
     """The head's kinematics: chain summary, head.toml, its MJCF, camera.toml and a picture."""
     from kinematics.mjcf import build_mjcf
@@ -50,7 +86,8 @@ def stage_kinematics(out: Path, context: dict) -> str:
 
 #: (folder, title, function) in pipeline order.
 STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
-    ("kinematics", "Head kinematics", stage_kinematics),
+    ("design", "Design: Pareto optimisation of the head's layout", stage_design),
+    ("kinematics", "Head kinematics of the chosen head", stage_kinematics),
 ]
 
 

@@ -1,0 +1,103 @@
+"""Search algorithms behind one ask/tell interface, so the runner can checkpoint any of them.
+
+* :func:`nsga3` : pymoo's NSGA-III with Das-Dennis reference directions. NSGA-II's crowding
+  distance loses selection pressure beyond three objectives; reference directions keep the
+  front spread over all seven.
+* :class:`RandomVariation` : the paper's own method as the baseline: random variations of the
+  3D coordinates of camera and motors, and a Pareto test of non-dominance to keep the best.
+
+Both are deterministic for a seed and picklable mid-run (their random generators included).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pymoo.algorithms.moo.nsga3 import NSGA3
+from pymoo.core.evaluator import Evaluator
+from pymoo.core.problem import Problem
+from pymoo.problems.static import StaticProblem
+from pymoo.util.ref_dirs import get_reference_directions
+
+from .pareto import non_dominated
+
+
+class AskTell:
+    """Interface: ``ask() -> X (n, n_var)``; ``tell(X, F, G)``. ``batch_size`` designs per ask."""
+
+    batch_size: int
+
+    def ask(self) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def tell(self, X: np.ndarray, F: np.ndarray, G: np.ndarray) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+
+class PymooAskTell(AskTell):
+    """Adapts a pymoo algorithm to :class:`AskTell` (evaluation happens outside pymoo)."""
+
+    def __init__(self, algorithm, problem: Problem, seed: int):
+        self.algorithm = algorithm
+        self.problem = problem
+        # Termination is the runner's business (an evaluation budget); give pymoo a distant one.
+        algorithm.setup(problem, termination=("n_gen", 10**9), seed=seed, verbose=False)
+        self.batch_size = algorithm.pop_size
+        self._pop = None
+
+    def ask(self) -> np.ndarray:
+        self._pop = self.algorithm.ask()
+        return self._pop.get("X")
+
+    def tell(self, X, F, G) -> None:
+        pop = self._pop[: len(X)]
+        Evaluator().eval(StaticProblem(self.problem, F=F, G=G), pop)
+        self.algorithm.tell(infills=pop)
+        self._pop = None
+
+
+def nsga3(problem: Problem, seed: int, partitions: int) -> PymooAskTell:
+    """NSGA-III over the problem with Das-Dennis directions (population = number of directions)."""
+    ref_dirs = get_reference_directions("das-dennis", problem.n_obj, n_partitions=partitions)
+    return PymooAskTell(NSGA3(ref_dirs=ref_dirs, pop_size=len(ref_dirs)), problem, seed)
+
+
+class RandomVariation(AskTell):
+    """The paper's optimiser: vary the coordinates at random, keep the non-dominated.
+
+    The first batch is uniform over the bounds. Afterwards each candidate is, with probability
+    ``explore``, uniform again, else a Gaussian variation (sigma = ``sigma_frac`` of each
+    bound's span) of a random member of the archive: the feasible non-dominated designs, or,
+    while none is feasible, the ``batch_size`` least-violating ones.
+    """
+
+    def __init__(self, xl, xu, batch_size: int, seed: int, sigma_frac: float = 0.1, explore: float = 0.2):
+        self.xl, self.xu = np.asarray(xl, float), np.asarray(xu, float)
+        self.batch_size = batch_size
+        self.sigma = sigma_frac * (self.xu - self.xl)
+        self.explore = explore
+        self.rng = np.random.default_rng(seed)
+        self.X = np.empty((0, len(self.xl)))
+        self.F = None
+        self.G = None
+        self.archive = np.empty(0, int)
+
+    def ask(self) -> np.ndarray:
+        n, d = self.batch_size, len(self.xl)
+        uniform = self.rng.uniform(self.xl, self.xu, (n, d))
+        if len(self.archive) == 0:
+            return uniform
+        parents = self.X[self.rng.choice(self.archive, n)]
+        varied = np.clip(parents + self.rng.normal(0.0, 1.0, (n, d)) * self.sigma, self.xl, self.xu)
+        pick = self.rng.uniform(size=n) < self.explore
+        return np.where(pick[:, None], uniform, varied)
+
+    def tell(self, X, F, G) -> None:
+        self.X = np.vstack([self.X, X])
+        self.F = F if self.F is None else np.vstack([self.F, F])
+        self.G = G if self.G is None else np.vstack([self.G, G])
+        feasible = np.all(self.G <= 0, axis=1)
+        if feasible.any():
+            self.archive = np.flatnonzero(non_dominated(self.F, feasible))
+        else:
+            cv = np.maximum(self.G, 0).sum(axis=1)
+            self.archive = np.argsort(cv, kind="stable")[: self.batch_size]

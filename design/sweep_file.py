@@ -1,0 +1,231 @@
+"""sweep.toml: a design sweep as data (bounds, servo, camera, brackets, workload, budget, decision).
+
+Loaded into a frozen :class:`SweepSpec`; every key is checked, unknown keys are errors, and the
+spec has a content hash so a resumed sweep can refuse a changed file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from kinematics import SERVO_CATALOGUE
+
+#: The seven criteria, all minimised, named exactly so in every output (paper, section 2).
+CRITERIA = (
+    "working_volume_cm3", "self_collision", "integrated_torque", "max_torque_nm",
+    "radius_elevation_mm", "radius_pan_mm", "radius_cyclotorsion_mm",
+)
+#: Inequality constraints (<= 0 is feasible).
+CONSTRAINTS = ("torque_excess_nm", "rest_penetration_m", "part_overlap_m")
+POSITIONS = ("elevation_motor", "pan_motor", "cyclotorsion_motor", "camera")
+VARIABLES = tuple(f"{p}_{c}_m" for p in POSITIONS for c in "xyz")
+
+
+class SweepFileError(ValueError):
+    """A sweep.toml that cannot be used; the message names the field and the fix."""
+
+
+@dataclass(frozen=True)
+class WorkloadSpec:
+    rate_hz: float = 100.0
+    saccade_amplitudes_deg: tuple[float, ...] = (5.0, 10.0, 20.0, 40.0)
+    saccade_peak_rate_deg_s: float = 30.0
+    walk_seconds: float = 2.0
+    walk_step_hz: float = 2.0
+    walk_bounce_m: float = 0.025
+    walk_sway_m: float = 0.020
+    walk_roll_deg: float = 3.0
+    walk_pitch_deg: float = 2.0
+    walk_yaw_deg: float = 4.0
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    servo: str
+    range_deg: float
+    evaluations: int
+    seed: int
+    algorithm: str
+    partitions: int
+    clearance_m: float
+    camera_mass_kg: float
+    camera_size_m: tuple[float, float, float]
+    bracket_density_kg_m: float
+    bracket_size_m: float
+    bounds: tuple[tuple[float, float], ...]   # (12, 2) in VARIABLES order
+    voxel_m: float
+    collision_steps: int
+    workload: WorkloadSpec
+    decision_method: str
+    decision_weights: tuple[float, ...]
+
+    @property
+    def xl(self) -> np.ndarray:
+        return np.array([b[0] for b in self.bounds])
+
+    @property
+    def xu(self) -> np.ndarray:
+        return np.array([b[1] for b in self.bounds])
+
+    def digest(self) -> str:
+        """Content hash of everything that changes results (budget, seed and algorithm excluded:
+        those are run options a resume may not change either, checked separately)."""
+        d = asdict(self)
+        for k in ("evaluations", "seed", "algorithm"):
+            d.pop(k)
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+_SECTIONS = {
+    "sweep": {"name", "servo", "range_deg", "evaluations", "seed", "algorithm", "partitions", "clearance_m"},
+    "camera": {"mass_kg", "size_m"},
+    "bracket": {"linear_density_kg_m", "size_m"},
+    "bounds": set(POSITIONS),
+    "criteria": {"voxel_m", "collision_steps"},
+    "workload": set(WorkloadSpec.__dataclass_fields__),
+    "decision": {"method", "weights"},
+}
+
+
+def _num(v, where: str, positive: bool = False, integer: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise SweepFileError(f"{where} = {v!r} must be a finite number")
+    if integer and int(v) != v:
+        raise SweepFileError(f"{where} = {v!r} must be a whole number")
+    if positive and v <= 0:
+        raise SweepFileError(f"{where} = {v!r} must be positive")
+    return int(v) if integer else float(v)
+
+
+def spec_from_dict(d: dict, source: str = "sweep.toml") -> SweepSpec:
+    try:
+        return _spec_from_dict(d)
+    except SweepFileError as e:
+        raise SweepFileError(f"{source}: {e}") from None
+
+
+def _spec_from_dict(d: dict) -> SweepSpec:
+    for sec in d:
+        if sec not in _SECTIONS:
+            raise SweepFileError(f"unknown section [{sec}]; sections are {sorted(_SECTIONS)}")
+    for sec, keys in _SECTIONS.items():
+        if sec not in d:
+            raise SweepFileError(f"missing section [{sec}]; copy it from the default sweep (wvr design sweep-template)")
+        for k in d[sec]:
+            if k not in keys:
+                raise SweepFileError(f"[{sec}]: unknown key {k!r}; allowed keys are {sorted(keys)}")
+        required = keys - ({"name"} if sec == "sweep" else set()) - (set(WorkloadSpec.__dataclass_fields__) if sec == "workload" else set())
+        for k in sorted(required):
+            if k not in d[sec]:
+                raise SweepFileError(f"[{sec}]: missing key {k!r}")
+    s = d["sweep"]
+    servo = str(s["servo"])
+    if servo not in SERVO_CATALOGUE:
+        raise SweepFileError(f"[sweep].servo = {servo!r} is not known; use one of {sorted(SERVO_CATALOGUE)}")
+    travel = math.degrees(SERVO_CATALOGUE[servo].travel_rad)
+    rng_deg = _num(s["range_deg"], "[sweep].range_deg", positive=True)
+    if rng_deg > travel + 1e-9:
+        raise SweepFileError(f"[sweep].range_deg = {rng_deg:g} exceeds the {servo}'s {travel:g} deg travel; use at most {travel:g}")
+    algorithm = str(s["algorithm"])
+    if algorithm not in ("nsga3", "random"):
+        raise SweepFileError(f"[sweep].algorithm = {algorithm!r} must be 'nsga3' or 'random'")
+    bounds = []
+    for pos in POSITIONS:
+        b = d["bounds"][pos]
+        where = f"[bounds].{pos}"
+        try:
+            arr = np.array(b, float)
+        except (TypeError, ValueError):
+            raise SweepFileError(f"{where} must be [[x_min, x_max], [y_min, y_max], [z_min, z_max]] in metres") from None
+        if arr.shape != (3, 2) or not np.all(np.isfinite(arr)):
+            raise SweepFileError(f"{where} must be [[x_min, x_max], [y_min, y_max], [z_min, z_max]] in metres")
+        for c, (lo, hi) in zip("xyz", arr):
+            if lo >= hi:
+                raise SweepFileError(f"{where}: {c} bounds [{lo:g}, {hi:g}] must have min < max")
+            if max(abs(lo), abs(hi)) > 1.0:
+                raise SweepFileError(f"{where}: {c} bounds [{lo:g}, {hi:g}] look like millimetres; bounds are metres")
+        bounds += [(float(lo), float(hi)) for lo, hi in arr]
+    cam_size = d["camera"]["size_m"]
+    if not (isinstance(cam_size, list) and len(cam_size) == 3):
+        raise SweepFileError("[camera].size_m must be [depth, width, height] in metres")
+    cam_size = tuple(_num(v, "[camera].size_m", positive=True) for v in cam_size)
+    w = d["workload"]
+    wl = WorkloadSpec(**{k: (tuple(_num(x, f"[workload].{k}", positive=True) for x in v) if isinstance(v, list)
+                             else _num(v, f"[workload].{k}", positive=k not in ("walk_bounce_m", "walk_sway_m",
+                                                                              "walk_roll_deg", "walk_pitch_deg",
+                                                                              "walk_yaw_deg")))
+                         for k, v in w.items()})
+    dec = d["decision"]
+    method = str(dec["method"])
+    if method not in ("pseudo-weights", "knee"):
+        raise SweepFileError(f"[decision].method = {method!r} must be 'pseudo-weights' or 'knee'")
+    weights = dec["weights"]
+    if not (isinstance(weights, list) and len(weights) == len(CRITERIA)):
+        raise SweepFileError(f"[decision].weights must list {len(CRITERIA)} weights, one per criterion: {list(CRITERIA)}")
+    weights = tuple(_num(v, "[decision].weights") for v in weights)
+    if min(weights) < 0 or sum(weights) <= 0:
+        raise SweepFileError("[decision].weights must be >= 0 with a positive sum")
+    return SweepSpec(
+        name=str(s.get("name", "sweep")), servo=servo, range_deg=rng_deg,
+        evaluations=_num(s["evaluations"], "[sweep].evaluations", positive=True, integer=True),
+        seed=_num(s["seed"], "[sweep].seed", integer=True), algorithm=algorithm,
+        partitions=_num(s["partitions"], "[sweep].partitions", positive=True, integer=True),
+        clearance_m=_num(s["clearance_m"], "[sweep].clearance_m"),
+        camera_mass_kg=_num(d["camera"]["mass_kg"], "[camera].mass_kg", positive=True),
+        camera_size_m=cam_size,
+        bracket_density_kg_m=_num(d["bracket"]["linear_density_kg_m"], "[bracket].linear_density_kg_m"),
+        bracket_size_m=_num(d["bracket"]["size_m"], "[bracket].size_m", positive=True),
+        bounds=tuple(bounds),
+        voxel_m=_num(d["criteria"]["voxel_m"], "[criteria].voxel_m", positive=True),
+        collision_steps=_num(d["criteria"]["collision_steps"], "[criteria].collision_steps", positive=True, integer=True),
+        workload=wl, decision_method=method, decision_weights=weights,
+    )
+
+
+def load_sweep(path: str | Path | None = None) -> SweepSpec:
+    """Read and validate a sweep.toml; ``None`` gives the shipped default sweep."""
+    if path is None:
+        return spec_from_dict(tomllib.loads(default_sweep_text()), "default_sweep.toml")
+    path = Path(path)
+    if not path.exists():
+        raise SweepFileError(f"{path}: no such file; give a sweep.toml (see: wvr design sweep-template)")
+    try:
+        d = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SweepFileError(f"{path}: not valid TOML ({e})") from None
+    return spec_from_dict(d, str(path))
+
+
+def default_sweep_text() -> str:
+    return resources.files("design").joinpath("data/default_sweep.toml").read_text()
+
+
+def spec_to_dict(spec: SweepSpec) -> dict:
+    """The sweep as a TOML-ready dict (the inverse of :func:`spec_from_dict`)."""
+    b = [list(p) for p in spec.bounds]
+    return {
+        "sweep": {"name": spec.name, "servo": spec.servo, "range_deg": spec.range_deg,
+                  "evaluations": spec.evaluations, "seed": spec.seed, "algorithm": spec.algorithm,
+                  "partitions": spec.partitions, "clearance_m": spec.clearance_m},
+        "camera": {"mass_kg": spec.camera_mass_kg, "size_m": list(spec.camera_size_m)},
+        "bracket": {"linear_density_kg_m": spec.bracket_density_kg_m, "size_m": spec.bracket_size_m},
+        "bounds": {pos: b[3 * k:3 * k + 3] for k, pos in enumerate(POSITIONS)},
+        "criteria": {"voxel_m": spec.voxel_m, "collision_steps": spec.collision_steps},
+        "workload": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(spec.workload).items()},
+        "decision": {"method": spec.decision_method, "weights": list(spec.decision_weights)},
+    }
+
+
+def dump_spec(spec: SweepSpec) -> str:
+    import tomli_w
+
+    return tomli_w.dumps(spec_to_dict(spec))
