@@ -116,6 +116,30 @@ def cmd_design_template(args) -> int:
     return 0
 
 
+def cmd_placement_map(args) -> int:
+    from placement.body import make_body
+    from placement.io import load_body, load_bvh
+    from placement.mapping import placement_map
+    from placement.motions import default_motions
+    from placement.scores import ScoreSettings
+
+    if (args.body is None) != (args.joints is None):
+        raise ValueError("--body and --joints go together: a labelled mesh and its joints JSON")
+    body = load_body(args.body, args.joints) if args.body else make_body(args.stature)
+    motions = [load_bvh(p, body) for p in args.motion] if args.motion else default_motions(body)
+    for m in motions:
+        if m.unmapped:
+            print(f"{m.name}: joints not driving any segment: {', '.join(m.unmapped)}")
+    settings = ScoreSettings(rays=args.rays, standoff_m=args.standoff)
+    s = placement_map(args.out, body, motions, settings)
+    print(f"scored {s['polygons']} places; maps, scores.csv, zones.md and mount.toml in {args.out}")
+    for r in s["zones"]:
+        if r["polygons"]:
+            print(f"  {r['zone']:9s} fov {r['fov']:.3f}  handling {r['handling_view']:.3f}  motion {r['motion_mm']:.0f} mm  "
+                  f"combined {r['combined']:.3f}  ({r['frame']}, acceptability {r['acceptability']})")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -174,6 +198,18 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=cmd_design_evaluate)
     tpl = dsub.add_parser("sweep-template", help="print the default sweep.toml to start your own")
     tpl.set_defaults(func=cmd_design_template)
+
+    pla = sub.add_parser("placement", help="where on the body to wear the camera: scores, body maps, zones")
+    psub = pla.add_subparsers(dest="placement_command", metavar="SUBCOMMAND", required=True)
+    pm = psub.add_parser("map", help="score every polygon of a body; write scores.csv, maps, zones.md, mount.toml")
+    pm.add_argument("--out", required=True, help="output directory")
+    pm.add_argument("--body", help="labelled mesh (OBJ with a group per segment, or PLY with a face label)")
+    pm.add_argument("--joints", help="joints JSON for --body: segment name -> joint centre (m)")
+    pm.add_argument("--stature", type=float, default=1.75, help="stature of the generated body, m (default 1.75)")
+    pm.add_argument("--motion", action="append", help="BVH motion file (repeatable); default: walk, sit, turn, reach")
+    pm.add_argument("--rays", type=int, default=2048, help="rays per place for the field of view (default 2048)")
+    pm.add_argument("--standoff", type=float, default=0.02, help="camera stand-off from the surface, m (default 0.02)")
+    pm.set_defaults(func=cmd_placement_map)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
     demo.add_argument("--out", required=True, help="output directory")

@@ -84,10 +84,28 @@ def stage_kinematics(out: Path, context: dict) -> str:
     ])
 
 
+def stage_placement(out: Path, context: dict) -> str:
+    """Camera placement on the default body with fewer rays; its mount.toml flows to the twin."""
+    from placement.mapping import placement_map
+    from placement.scores import ScoreSettings
+
+    s = placement_map(out, settings=ScoreSettings(rays=256, motion_frames=15), progress=False)
+    context["mount"] = out / "mount.toml"
+    rel = out.name
+    maps = " ".join(f"![{k}]({rel}/{v})" for k, v in s["maps"].items() if k in ("fov", "combined"))
+    zones = (out / "zones.md").read_text().split("\n", 2)[2]
+    return "\n".join([
+        f"{s['polygons']} places on a {s['stature_m']:.2f} m body, {s['rays']} rays each over the poses "
+        f"{', '.join(s['poses'])}; motions {', '.join(s['motions'])}. "
+        f"Files: [scores.csv]({rel}/scores.csv), [zones.md]({rel}/zones.md), [mount.toml]({rel}/mount.toml), "
+        + ", ".join(f"[{k} map]({rel}/{v})" for k, v in s["maps"].items()) + ".", "", maps, "", zones])
+
+
 #: (folder, title, function) in pipeline order.
 STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("design", "Design: Pareto optimisation of the head's layout", stage_design),
     ("kinematics", "Head kinematics of the chosen head", stage_kinematics),
+    ("placement", "Placement: where on the body to wear it", stage_placement),
 ]
 
 

@@ -1,0 +1,178 @@
+"""The paper's Head / Shoulder / Chest table, computed from the scores, and mount.toml.
+
+Zones (stated geometrically; ``radius_m`` and thresholds are arguments):
+
+``head``      head-segment polygons at least 0.10 m above the neck joint (the head, not the
+              neck) that do not face downwards (normal z > -0.5).
+``shoulder``  upward-facing chest polygons (normal z > 0.5) within ``radius_m`` (0.12 m) of
+              either shoulder joint.
+``chest``     forward-facing chest polygons (normal . forward > 0.7) below the shoulder joints
+              by at least 0.05 m.
+
+Columns, per zone: mean field of view, handling view, motion (world and pelvis frames, mm and
+deg), and two judgements by stated rules:
+
+* frame of reference the zone ties a fixed camera to: the wearer's *attention* if the zone is
+  on the head (it turns where the wearer looks); the wearer's *workspace* if the zone faces
+  forward on the torso (it turns with the trunk towards the work); otherwise the *world*: a
+  torso zone that faces neither the gaze nor the work leaves an active head free to refer its
+  view to the world (gravity, SLAM), for most tasks.
+* social acceptability, by the camera's distance from the wearer's eyes in the rest pose (a
+  camera at the face is in the face of everyone the wearer talks to): < 0.15 m low,
+  0.15 to 0.30 m medium, > 0.30 m high.
+
+The best polygon of each zone (highest combined score) is written as ``mount_<zone>.toml``;
+``mount.toml`` is the best of the zones not tied to the wearer's attention (the paper's
+criterion for choosing the shoulder).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from .body import SEGMENT_INDEX, Body
+from .scores import ScoreTable
+
+FORWARD = np.array([0.0, -1.0, 0.0])   # the body faces -Y
+ZONES = ("head", "shoulder", "chest")
+
+
+def zone_masks(body: Body, table: ScoreTable, radius_m: float = 0.12) -> dict[str, np.ndarray]:
+    """(F,) bool mask of each zone's polygons."""
+    c, n = table.centroid, table.normal
+    seg = body.face_segment
+    j = body.joints
+    neck = j[SEGMENT_INDEX["head"]]
+    shoulders = j[[SEGMENT_INDEX["upper_arm_l"], SEGMENT_INDEX["upper_arm_r"]]]
+    near_shoulder = np.min(np.linalg.norm(c[:, None, :] - shoulders[None], axis=2), axis=1) <= radius_m
+    chest = seg == SEGMENT_INDEX["chest"]
+    return {
+        "head": (seg == SEGMENT_INDEX["head"]) & (c[:, 2] >= neck[2] + 0.10) & (n[:, 2] > -0.5),
+        "shoulder": chest & (n[:, 2] > 0.5) & near_shoulder,
+        "chest": chest & (n @ FORWARD > 0.7) & (c[:, 2] <= shoulders[:, 2].min() - 0.05),
+    }
+
+
+def eye_point(body: Body) -> np.ndarray:
+    """The eyes, rest pose: the head's front surface at 93.6% of stature (Drillis and Contini)."""
+    v = body.vertices[body.vertex_segment == SEGMENT_INDEX["head"]]
+    z = body.vertices[:, 2].min() + 0.936 * body.stature_m
+    near = v[np.abs(v[:, 2] - z) < 0.03]
+    front = near[np.argmin(near @ -FORWARD)] if len(near) else v[np.argmax(v[:, 2])]
+    return np.array([0.0, front[1], z])
+
+
+def reference_frame(zone: str, mean_normal: np.ndarray) -> str:
+    if zone == "head":
+        return "wearer's attention"
+    if mean_normal @ FORWARD > 0.5:
+        return "wearer's workspace"
+    return "world (most tasks)"
+
+
+def acceptability(distance_to_eyes_m: float) -> str:
+    return "low" if distance_to_eyes_m < 0.15 else ("medium" if distance_to_eyes_m <= 0.30 else "high")
+
+
+def zone_table(body: Body, table: ScoreTable, radius_m: float = 0.12) -> list[dict]:
+    """One row per zone with its figures, judgements and best polygon."""
+    masks = zone_masks(body, table, radius_m)
+    eyes = eye_point(body)
+    rows = []
+    for zone in ZONES:
+        m = masks[zone]
+        if not m.any():
+            rows.append({"zone": zone, "polygons": 0})
+            continue
+        idx = np.flatnonzero(m)
+        best = int(idx[np.argmax(table["combined"][idx])])
+        mean_n = table.normal[idx].mean(axis=0)
+        mean_n /= np.linalg.norm(mean_n)
+        d_eyes = float(np.linalg.norm(table.centroid[best] - eyes))
+        rows.append({
+            "zone": zone, "polygons": int(m.sum()),
+            **{k: float(table[k][idx].mean()) for k in ("fov", "handling_view", "motion_mm", "motion_deg",
+                                                          "motion_pelvis_mm", "motion_pelvis_deg", "combined")},
+            "frame": reference_frame(zone, mean_n),
+            "distance_to_eyes_m": d_eyes,
+            "acceptability": acceptability(d_eyes),
+            "best_polygon": best, "best_combined": float(table["combined"][best]),
+        })
+    return rows
+
+
+def mount_dict(body: Body, table: ScoreTable, polygon: int, zone: str) -> dict:
+    """mount.toml contents for a polygon: its segment, and position and axes in the segment frame.
+
+    The segment frame has its origin at the segment's joint centre and the body's axes in the
+    rest pose. The mount frame (as the head's: x forward, y left, z up) has z along the
+    polygon's normal, x the body's forward direction made perpendicular to it.
+    """
+    seg_i = int(body.face_segment[polygon])
+    seg = table.segment[polygon]
+    n = table.normal[polygon]
+    c = table.centroid[polygon] + table.settings.standoff_m * n
+    x = FORWARD - n * (FORWARD @ n)
+    if np.linalg.norm(x) < 1e-6:       # a forward-facing polygon: take "up" as the mount's x
+        x = np.array([0.0, 0.0, 1.0]) - n * n[2]
+    x /= np.linalg.norm(x)
+    return {"mount": {
+        "zone": zone, "segment": seg, "polygon": int(polygon),
+        "position_m": [float(v) for v in c - body.joints[seg_i]],
+        "normal": [float(v) for v in n], "forward": [float(v) for v in x],
+        "standoff_m": table.settings.standoff_m, "stature_m": body.stature_m,
+    }}
+
+
+def write_zones(body: Body, table: ScoreTable, out: str | Path, paper_check: bool = True) -> list[dict]:
+    """zones.md and the mount files; returns the table rows."""
+    out = Path(out)
+    rows = zone_table(body, table)
+    valid = [r for r in rows if r["polygons"]]
+    for r in valid:
+        (out / f"mount_{r['zone']}.toml").write_text(tomli_w.dumps(mount_dict(body, table, r["best_polygon"], r["zone"])))
+    free = [r for r in valid if r["frame"] != "wearer's attention"]
+    chosen = max(free, key=lambda r: r["best_combined"]) if free else None
+    if chosen:
+        (out / "mount.toml").write_text(tomli_w.dumps(mount_dict(body, table, chosen["best_polygon"], chosen["zone"])))
+    lines = ["# Where to wear the camera: Head, Shoulder, Chest", "",
+             "Computed from the per-polygon scores (`scores.csv`); zones, rules and weights are stated in "
+             "`placement/zones.py` and `placement/scores.py`. Motion is the mean displacement of the camera over the "
+             f"motions ({', '.join(table.motions)}); field and handling view are means over the poses "
+             f"({', '.join(table.poses)}).", "",
+             "| zone | polygons | field of view | handling view | motion, world (mm / deg) | motion, pelvis (mm / deg) "
+             "| ties the camera to | eyes (m) | social acceptability | combined (mean / best) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if not r["polygons"]:
+            lines.append(f"| {r['zone']} | 0 | | | | | | | | |")
+            continue
+        lines.append(f"| {r['zone']} | {r['polygons']} | {r['fov']:.3f} | {r['handling_view']:.3f} | "
+                     f"{r['motion_mm']:.0f} / {r['motion_deg']:.1f} | {r['motion_pelvis_mm']:.0f} / {r['motion_pelvis_deg']:.1f} | "
+                     f"{r['frame']} | {r['distance_to_eyes_m']:.2f} | {r['acceptability']} | "
+                     f"{r['combined']:.3f} / {r['best_combined']:.3f} |")
+    lines.append("")
+    if chosen:
+        lines += [f"`mount.toml`: the best polygon ({chosen['best_polygon']}) of the **{chosen['zone']}** zone, the "
+                  "highest combined score among zones that do not tie the camera to the wearer's attention. "
+                  "Each zone's best polygon is in `mount_<zone>.toml`.", ""]
+    if paper_check and len(valid) == 3:
+        by = {r["zone"]: r for r in valid}
+        lines += ["## Against the paper's claims", ""]
+        fov_rank = sorted(by, key=lambda z: -by[z]["fov"])
+        lines.append(f"- Field of view ranks {' > '.join(fov_rank)}; the paper has head and shoulder *wide* and chest "
+                     f"*limited*: {'agrees' if fov_rank[-1] == 'chest' else 'does not agree'}.")
+        mo_rank = sorted(by, key=lambda z: by[z]["motion_mm"])
+        lines.append(f"- Motion (least first) ranks {' < '.join(mo_rank)}; the paper has the head's motion *large*, the "
+                     f"shoulder's and chest's *small*: {'agrees' if mo_rank[-1] == 'head' else 'does not agree'}.")
+        best = max(by, key=lambda z: by[z]["combined"])
+        lines.append(f"- The best combined zone on average is the {best}; the paper favours head and shoulders"
+                     f"{', and here agrees' if best in ('head', 'shoulder') else ', and here does not agree'}.")
+        lines.append(f"- Without the attention-tied head, the {chosen['zone']} wins"
+                     f"{' as in the paper' if chosen['zone'] == 'shoulder' else ', unlike the paper (which chose the shoulder)'}.")
+        lines.append("")
+    (out / "zones.md").write_text("\n".join(lines))
+    return rows
