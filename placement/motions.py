@@ -112,6 +112,17 @@ def reach(body: Body, seconds: float = 2.0, rate_hz: float = 30.0, side: str = "
     return Motion("reach", t, rv, root)
 
 
+def stand(body: Body, seconds: float = 12.0, rate_hz: float = 30.0) -> Motion:
+    """Standing at a bench: postural sway (a few millimetres, ~0.2 Hz) and breathing."""
+    t = np.arange(0.0, seconds, 1.0 / rate_hz)
+    rv, root = _empty(len(t))
+    root[:, 0] = 0.004 * np.sin(2 * math.pi * 0.17 * t)
+    root[:, 1] = 0.006 * np.sin(2 * math.pi * 0.23 * t + 1.0)
+    _set(rv, "chest", 0, D(0.8) * np.sin(2 * math.pi * 0.25 * t))    # breathing
+    _set(rv, "head", 0, D(1.5) * np.sin(2 * math.pi * 0.11 * t))
+    return Motion("stand", t, rv, root)
+
+
 PROCEDURAL = {"walk": walk, "sit-down": sit_down, "turn": turn, "reach": reach}
 
 

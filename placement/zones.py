@@ -105,24 +105,22 @@ def zone_table(body: Body, table: ScoreTable, radius_m: float = 0.12) -> list[di
 
 
 def mount_dict(body: Body, table: ScoreTable, polygon: int, zone: str) -> dict:
-    """mount.toml contents for a polygon: its segment, and position and axes in the segment frame.
+    """mount.toml contents for a polygon: its segment, and the mount's position and axes in the
+    segment frame (origin at the segment's joint centre, the body's axes in the rest pose).
 
-    The segment frame has its origin at the segment's joint centre and the body's axes in the
-    rest pose. The mount frame (as the head's: x forward, y left, z up) has z along the
-    polygon's normal, x the body's forward direction made perpendicular to it.
+    The mount sits ``standoff_m`` out along the polygon's normal and is levelled, as a bracket
+    would level it: its x axis is the body's forward direction and its z axis the body's up,
+    whatever the slope of the surface (the surface normal is kept for reference).
     """
     seg_i = int(body.face_segment[polygon])
     seg = table.segment[polygon]
     n = table.normal[polygon]
     c = table.centroid[polygon] + table.settings.standoff_m * n
-    x = FORWARD - n * (FORWARD @ n)
-    if np.linalg.norm(x) < 1e-6:       # a forward-facing polygon: take "up" as the mount's x
-        x = np.array([0.0, 0.0, 1.0]) - n * n[2]
-    x /= np.linalg.norm(x)
     return {"mount": {
         "zone": zone, "segment": seg, "polygon": int(polygon),
         "position_m": [float(v) for v in c - body.joints[seg_i]],
-        "normal": [float(v) for v in n], "forward": [float(v) for v in x],
+        "forward": [float(v) for v in FORWARD], "up": [0.0, 0.0, 1.0],
+        "normal": [float(v) for v in n],
         "standoff_m": table.settings.standoff_m, "stature_m": body.stature_m,
     }}
 

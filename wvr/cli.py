@@ -6,7 +6,14 @@ wrong and how to fix it, and :func:`main` prints that one line and exits with st
 
 from __future__ import annotations
 
-import argparse
+import os
+
+# Headless by default: MuJoCo and VTK render offscreen through EGL unless told otherwise.
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+import argparse  # noqa: E402
 import json
 import sys
 from pathlib import Path
@@ -140,6 +147,50 @@ def cmd_placement_map(args) -> int:
     return 0
 
 
+def wearer_for(scenario, seconds: float):
+    """The twin's wearer for a scenario: the placement body posed by the named placement motion,
+    placed in the world where the scenario says (the twin never imports placement itself)."""
+    from placement import motions
+    from placement.body import SEGMENTS, make_body
+    from runtime.twin.wearer import Wearer
+
+    body = make_body()
+    if scenario.motion == "stand":
+        m = motions.stand(body, seconds)
+    elif scenario.motion == "walk":
+        m = motions.walk(body, seconds, speed_m_s=scenario.walk_speed_m_s, cycle_s=1.2)
+    elif scenario.motion == "sit-down":
+        m = motions.sit_down(body, seconds)
+    else:
+        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down")
+    G = scenario.T_world_body() @ body.segment_transforms(m)
+    return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
+
+
+def make_twin(head_path=None, mount_path=None, camera_path=None):
+    """A Twin with the chosen (or reference) head, the chosen (or default shoulder) mount."""
+    from kinematics import reference_head
+    from runtime.twin.mount import default_shoulder_mount, load_mount
+    from runtime.twin.twin import Twin
+
+    head = load_head(head_path) if head_path else reference_head()
+    mount = load_mount(mount_path) if mount_path else default_shoulder_mount
+    cam = load_camera(camera_path) if camera_path else default_camera()
+    return Twin(head, cam, mount, wearer_for)
+
+
+def cmd_sim_record(args) -> int:
+    from runtime.twin.recorder import record
+
+    twin = make_twin(args.head, args.mount, args.camera)
+    try:
+        out = record(twin, args.scenario, args.out, seconds=args.seconds, seed=args.seed)
+    finally:
+        twin.close()
+    print(f"recorded {args.scenario} into {out}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -210,6 +261,18 @@ def build_parser() -> argparse.ArgumentParser:
     pm.add_argument("--rays", type=int, default=2048, help="rays per place for the field of view (default 2048)")
     pm.add_argument("--standoff", type=float, default=0.02, help="camera stand-off from the surface, m (default 0.02)")
     pm.set_defaults(func=cmd_placement_map)
+
+    sim = sub.add_parser("sim", help="the MuJoCo twin: record sequences of the wearer and the head")
+    ssub = sim.add_subparsers(dest="sim_command", metavar="SUBCOMMAND", required=True)
+    rec = ssub.add_parser("record", help="record a scenario as a sequence (TUM layout, camera.toml, target.toml)")
+    rec.add_argument("--scenario", required=True, choices=["workbench-static", "walk", "sit-down"])
+    rec.add_argument("--out", required=True, help="output sequence folder")
+    rec.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
+    rec.add_argument("--seed", type=int, default=0, help="scene seed (textures, object layout, sensor noise)")
+    rec.add_argument("--head", help="head.toml (default: chosen_head.toml if given, else the reference head)")
+    rec.add_argument("--mount", help="mount.toml from wvr placement map (default: on the right shoulder)")
+    rec.add_argument("--camera", help="camera.toml (default: 640x480, f = 514.7 px)")
+    rec.set_defaults(func=cmd_sim_record)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
     demo.add_argument("--out", required=True, help="output directory")

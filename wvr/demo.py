@@ -9,6 +9,7 @@ uses is whatever the previous stages chose (``context["head"]``).
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Callable
@@ -101,11 +102,39 @@ def stage_placement(out: Path, context: dict) -> str:
         + ", ".join(f"[{k} map]({rel}/{v})" for k, v in s["maps"].items()) + ".", "", maps, "", zones])
 
 
+def stage_twin(out: Path, context: dict) -> str:
+    """A short workbench-static recording of the chosen head on the chosen mount."""
+    from kinematics import reference_head, save_head
+    from runtime.sequence import open_sequence
+    from runtime.twin.recorder import record
+    from wvr.cli import make_twin
+
+    head_file = out / "head.toml"
+    save_head(context.get("head") or reference_head(), head_file)
+    mount = context.get("mount")
+    twin = make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    try:
+        seq_dir = record(twin, "workbench-static", out / "workbench-static", seconds=3.0, seed=0, progress=False)
+    finally:
+        twin.close()
+    context["sequence"] = seq_dir
+    seq = open_sequence(seq_dir)
+    rel = f"{out.name}/{seq_dir.name}"
+    shutil.copy(seq.paths[0], out / "first_frame.png")
+    return "\n".join([
+        f"{len(seq)} frames of `workbench-static` (640x480, 30 Hz), the chosen head on the "
+        f"{'chosen' if mount else 'default shoulder'} mount. Sequence folder: [{seq_dir.name}]({rel}/rgb.txt) "
+        f"with [groundtruth.txt]({rel}/groundtruth.txt), [imu.txt]({rel}/imu.txt), [joints.txt]({rel}/joints.txt), "
+        f"[camera.toml]({rel}/camera.toml), [target.toml]({rel}/target.toml).", "",
+        f"![first frame]({out.name}/first_frame.png)"])
+
+
 #: (folder, title, function) in pipeline order.
 STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("design", "Design: Pareto optimisation of the head's layout", stage_design),
     ("kinematics", "Head kinematics of the chosen head", stage_kinematics),
     ("placement", "Placement: where on the body to wear it", stage_placement),
+    ("twin", "Twin: a recording in the workbench scene", stage_twin),
 ]
 
 
@@ -118,7 +147,9 @@ def run_demo(out: Path) -> Path:
                 "(Mayol, Davison, Tordoff, Murray: *Applying Active Vision and SLAM to Wearables*).", ""]
     for folder, title, fn in tqdm(STAGES, desc="wvr demo", unit="stage"):
         d = out / folder
-        d.mkdir(exist_ok=True)
+        if d.exists():          # the demo owns its folders: every run starts afresh
+            shutil.rmtree(d)
+        d.mkdir()
         t0 = time.perf_counter()
         body = fn(d, context)
         sections += [f"## {title}", "", body, "", f"*Stage time: {time.perf_counter() - t0:.1f} s*", ""]

@@ -1,0 +1,55 @@
+"""Recording a scenario into a sequence folder in the shared format (TUM layout + TOML files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from kinematics import ServoFilter
+from kinematics.camera import project
+
+from ..sequence import SequenceWriter, Target
+from .twin import Twin
+
+#: Scripted head motions respect the paper's controlled-motion limit, as a controller would.
+SCRIPT_SPEED_RAD_S = np.radians(30.0)
+
+
+def target_in_first_frame(twin: Twin) -> Target:
+    """The target's four corners (world) and where the camera model projects them now."""
+    T = twin.ground_truth.T_world_cam
+    xyz = twin.scenario.bench.target_corners()
+    P_cam = (xyz - T[:3, 3]) @ T[:3, :3]
+    uv = project(twin.camera, P_cam)
+    cam = twin.camera
+    inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) \
+        & (uv[:, 1] <= cam.height - 1)
+    if not inside.all():
+        raise ValueError(f"the target is not in view at the start of {twin.scenario.name}: corners "
+                         f"{np.flatnonzero(~inside).tolist()} fall outside the image; check the head, mount and camera")
+    return Target(xyz=xyz, uv=uv)
+
+
+def record(twin: Twin, scenario: str, out: str | Path, seconds: float | None = None, seed: int = 0,
+           progress: bool = True) -> Path:
+    """Run a scenario with its scripted head and write the sequence to ``out``."""
+    out = Path(out)
+    obs = twin.reset(scenario, seed=seed, seconds=seconds)
+    n_frames = int(round(twin.seconds * twin.frame_rate))
+    script = ServoFilter(twin.head, twin.filter.q, speed_limit=SCRIPT_SPEED_RAD_S)
+    dt = 1.0 / twin.frame_rate
+    with SequenceWriter(out, twin.camera, target=target_in_first_frame(twin)) as w:
+        for i in tqdm(range(n_frames), desc=f"record {twin.scenario.name}", unit="frame", disable=not progress):
+            gt = twin.ground_truth
+            w.add_frame(obs.t, obs.image)
+            w.add_groundtruth(obs.t, gt.T_world_cam)
+            w.add_joints(obs.t, obs.encoders)
+            for row in obs.imu:
+                w.add_imu(row[0], row[1:4], row[4:7])
+            if i == n_frames - 1:
+                break
+            desired = twin.scripted_command(obs.t + dt, script.q)
+            obs = twin.step(script.step(desired, dt))
+    return out

@@ -1,0 +1,82 @@
+"""Named, seeded scenarios: where the wearer is, what the body does, what a recording's head does.
+
+The body's motion is named (``stand``, ``walk``, ``sit-down``) and supplied by whoever builds
+the wearer (the placement motions, through ``wvr``); the scenario places the body in the world
+(``body_xy``, ``body_yaw``: the body frame faces -y rotated by the yaw) and says what the
+scripted head looks at in a recording (the closed loop replaces the script by a controller).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .scene import Workbench
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    motion: str
+    seconds: float
+    body_xy: tuple[float, float]
+    body_yaw: float
+    gaze: str                     # "sweep-bench", "follow-bench" or "hold-target"
+    walk_speed_m_s: float = 0.0
+    bench: Workbench = field(default_factory=Workbench)
+    light: float = 1.0
+    dim_to: float | None = None   # light scale at the end of the scenario (linear ramp), if dimming
+    stool: bool = False
+
+    def T_world_body(self) -> np.ndarray:
+        """(4, 4) where the wearer's body frame is placed in the world at t = 0."""
+        c, s = math.cos(self.body_yaw), math.sin(self.body_yaw)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:2, 3] = self.body_xy
+        return T
+
+    def light_at(self, t: float) -> float:
+        if self.dim_to is None:
+            return self.light
+        a = min(max(t / self.seconds, 0.0), 1.0)
+        return (1 - a) * self.light + a * self.dim_to
+
+    def look_at(self, t: float, wearer_xy: np.ndarray) -> np.ndarray:
+        """World point the scripted head fixates at time t (recordings only)."""
+        b = self.bench
+        target = np.r_[b.target_xy, b.height]
+        if self.gaze == "hold-target":
+            return target
+        if self.gaze == "sweep-bench":
+            return target + np.array([0.35 * math.sin(2 * math.pi * t / 9.0), -0.12 * math.sin(2 * math.pi * t / 6.0), 0.0])
+        if self.gaze == "follow-bench":
+            # First the target (for SLAM's start-up), then, blending in over a second, the bench
+            # point beside the wearer, wandering ahead and back along it.
+            x = float(np.clip(wearer_xy[0] + 0.25 * math.sin(2 * math.pi * t / 7.0), b.centre_xy[0] - b.size[0] / 2 + 0.1,
+                              b.centre_xy[0] + b.size[0] / 2 - 0.1))
+            follow = np.array([x, b.target_xy[1], b.height])
+            a = min(max(t - 1.0, 0.0), 1.0)
+            a = a * a * (3 - 2 * a)
+            return (1 - a) * target + a * follow
+        raise ValueError(f"unknown gaze script {self.gaze!r}")
+
+
+SCENARIOS: dict[str, Scenario] = {
+    "workbench-static": Scenario("workbench-static", "stand", 12.0, (0.0, 0.05), 0.0, "sweep-bench"),
+    # Walking slowly along a long bench on the wearer's right (the body faces +x).
+    "walk": Scenario("walk", "walk", 12.0, (-1.6, 0.05), math.pi / 2, "follow-bench", walk_speed_m_s=0.27,
+                     bench=Workbench(centre_xy=(0.0, -0.75), size=(3.6, 0.7), target_xy=(-1.35, -0.6))),
+    "sit-down": Scenario("sit-down", "sit-down", 6.0, (0.0, 0.15), 0.0, "hold-target", stool=True),
+}
+
+
+def get_scenario(name: str | Scenario) -> Scenario:
+    if isinstance(name, Scenario):
+        return name
+    try:
+        return SCENARIOS[name]
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}") from None

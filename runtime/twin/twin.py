@@ -1,0 +1,261 @@
+"""The twin in closed loop: ``reset(scenario, seed)``, then ``step(joint command)`` per frame.
+
+What a controller gets (:class:`Observation`): the image, the IMU samples since the last
+frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder angles
+and the time. Ground truth (:class:`GroundTruth`) is kept apart for evaluation and recording;
+no controller is handed it.
+
+Physics: MuJoCo at 1 kHz. The wearer is kinematic (mocap bodies following the wearer's track);
+the head's three hinges are simulated, driven by position servos with the HS-50's force limit
+and reflected rotor inertia. Every command passes the kinematics servo filter (range, 10 rad/s)
+first and is ramped over the frame period as the servo's controller does.
+
+The IMU is derived from the simulated camera trajectory by central differences at the physics
+rate (angular rate from consecutive orientations, specific force from the second difference of
+position minus gravity): MuJoCo's own IMU sensors cannot see a mocap parent's motion, and the
+wearer's motion is what the IMU must sense.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, forward_kinematics, gaze_at_point
+from kinematics.camera import CameraIntrinsics
+from kinematics.mjcf import R_OPT_MJCAM
+
+from .mount import Mount
+from .render import ImageFormation, image_formation
+from .scenarios import Scenario, get_scenario
+from .scene import HEAD_PREFIX, TIMESTEP, WEARER_PREFIX, build_scene
+from .wearer import Wearer
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+
+
+@dataclass
+class Observation:
+    """What a controller may see after a step.
+
+    t : s. image : (H, W, 3) uint8 RGB. imu : (K, 7) rows [t, wx, wy, wz, ax, ay, az] (rad/s,
+    m/s^2, optical frame) since the previous observation. encoders : (3,) joint angles, rad.
+    """
+
+    t: float
+    image: np.ndarray
+    imu: np.ndarray
+    encoders: np.ndarray
+
+
+@dataclass
+class GroundTruth:
+    """Evaluation only. T_world_cam : (4, 4) optical frame to world. q : (3,) true joint angles.
+    T_world_mount : (4, 4) the head's mount frame. command : (3,) what the servos were sent."""
+
+    t: float
+    T_world_cam: np.ndarray
+    q: np.ndarray
+    T_world_mount: np.ndarray
+    command: np.ndarray
+
+
+class Twin:
+    """Wearer + head + workbench in MuJoCo.
+
+    Parameters
+    ----------
+    head, camera : the head geometry and the camera's intrinsics (any lens model).
+    mount : where the head sits on the wearer; or a callable wearer -> Mount (e.g. the default
+        shoulder mount).
+    wearer_for : callable (scenario, seconds) -> :class:`Wearer` in world coordinates.
+    frame_rate, imu_rate : Hz. gyro_noise, accel_noise, encoder_noise : standard deviations.
+    """
+
+    def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, mount: Mount | Callable[[Wearer], Mount],
+                 wearer_for: Callable[[Scenario, float], Wearer], frame_rate: float = 30.0, imu_rate: float = 200.0,
+                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0):
+        self.head = head
+        self.camera = camera
+        self._mount = mount
+        self.wearer_for = wearer_for
+        self.frame_rate = frame_rate
+        self.steps_per_frame = int(round(1.0 / (frame_rate * TIMESTEP)))
+        self.steps_per_imu = int(round(1.0 / (imu_rate * TIMESTEP)))
+        self.noise = (gyro_noise, accel_noise, encoder_noise)
+        self.formation: ImageFormation = image_formation(camera)
+        self.model = None
+        self.renderer = None
+
+    # ------------------------------------------------------------------ set-up
+    def reset(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
+              q0=None) -> Observation:
+        """Build the scene for a scenario and seed; returns the first observation (t = 0).
+
+        ``q0`` : initial joint angles (default: the scripted gaze's first fixation)."""
+        sc = get_scenario(scenario)
+        self.scenario = sc
+        self.seconds = sc.seconds if seconds is None else float(seconds)
+        self.rng = np.random.default_rng(seed)
+        self.wearer = self.wearer_for(sc, self.seconds + 1.0)
+        self.mount = self._mount(self.wearer) if callable(self._mount) else self._mount
+        self.ms = self.wearer.index(self.mount.segment)
+        self.T_rest_mount = self.mount.T_rest_mount(self.wearer.joints[self.ms])
+        stool = None
+        if sc.stool:
+            j = self.wearer.joints
+            thigh = np.linalg.norm(j[self.wearer.index("shank_l")] - j[self.wearer.index("thigh_l")])
+            c, s = math.cos(sc.body_yaw), math.sin(sc.body_yaw)
+            back = np.array([-s, c]) * (thigh + 0.05)       # the body's +y (behind it) in the world
+            stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
+        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
+                                  stool=stool)
+        if self.renderer is not None:
+            self.renderer.close()
+        self.model = mujoco.MjModel.from_xml_string(xml, assets)
+        self.data = mujoco.MjData(self.model)
+        rc = self.formation.render_camera
+        self.renderer = mujoco.Renderer(self.model, rc.height, rc.width)
+        self.cam_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, HEAD_PREFIX + "camera")
+        self.qadr = np.array([self.model.jnt_qposadr[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, HEAD_PREFIX + n)]
+                              for n in JOINT_NAMES])
+        self.vadr = np.array([self.model.jnt_dofadr[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, HEAD_PREFIX + n)]
+                              for n in JOINT_NAMES])
+        self.mocap = np.array([self.model.body_mocapid[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY,
+                                                                          WEARER_PREFIX + s)] for s in self.wearer.segments])
+        self.light0 = self.model.light_diffuse.copy()
+        # The mounted segment's pose at every physics step (vectorised spline evaluation).
+        n_steps = int(math.ceil(self.seconds / TIMESTEP)) + self.steps_per_frame + 2
+        self.step_times = np.arange(n_steps) * TIMESTEP
+        self.G_mount_seg = self.wearer.pose(self.ms, self.step_times)
+        self.mount_quat_wxyz = Rotation.from_matrix(self.G_mount_seg[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
+        self.k = 0
+        self.cam_p = np.zeros((n_steps + 1, 3))
+        self.cam_R = np.zeros((n_steps + 1, 3, 3))
+        self._imu_pending = []
+        if q0 is None:
+            q0 = self.scripted_command(0.0, np.zeros(3))
+        self.filter = ServoFilter(self.head, q0)
+        self.data.qpos[self.qadr] = self.filter.q
+        self.data.ctrl[:] = self.filter.q
+        self._cmd_prev = self.filter.q.copy()
+        self._command = self.filter.q.copy()
+        self._set_wearer(0.0, all_segments=True)
+        mujoco.mj_forward(self.model, self.data)
+        self._record_cam(0)
+        self._imu_next = 0
+        return self._observe()
+
+    def set_light(self, scale: float) -> None:
+        """Scale the scene's lights (1 = as built; 0.2 = dim)."""
+        self.model.light_diffuse[:] = self.light0 * float(scale)
+
+    # ------------------------------------------------------------------ loop
+    @property
+    def t(self) -> float:
+        return self.k * TIMESTEP
+
+    def step(self, q_command) -> Observation:
+        """Send one joint command (3,) rad; advance one frame period; return the next observation."""
+        if self.model is None:
+            raise RuntimeError("call reset(scenario, seed) first")
+        dt = self.steps_per_frame * TIMESTEP
+        cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
+        self._command = cmd
+        start = self._cmd_prev
+        self.set_light(self.scenario.light_at(self.t))
+        if self.k + self.steps_per_frame >= len(self.step_times):
+            raise RuntimeError(f"the scenario was prepared for {self.seconds:g} s; reset with a longer 'seconds'")
+        for i in range(1, self.steps_per_frame + 1):
+            a = i / self.steps_per_frame
+            self.data.ctrl[:] = (1 - a) * start + a * cmd
+            # The step integrates from the state at k with the wearer where it is at k.
+            mujoco.mj_step(self.model, self.data)
+            self.k += 1
+            self._set_wearer(self.step_times[self.k], all_segments=False, index=self.k)
+            self._record_cam(self.k)
+        self._cmd_prev = cmd
+        self._set_wearer(self.t, all_segments=True)
+        mujoco.mj_forward(self.model, self.data)
+        return self._observe()
+
+    def _set_wearer(self, t: float, all_segments: bool, index: int | None = None) -> None:
+        if all_segments:
+            G = self.wearer.poses(t)
+            segs = np.arange(len(self.wearer.segments))
+            pos = G[:, :3, 3]
+            quat = Rotation.from_matrix(G[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
+        else:
+            segs = np.array([self.ms])
+            pos = self.G_mount_seg[index][None, :3, 3]
+            quat = self.mount_quat_wxyz[index][None]
+        self.data.mocap_pos[self.mocap[segs]] = pos
+        self.data.mocap_quat[self.mocap[segs]] = quat
+
+    def _record_cam(self, k: int) -> None:
+        # mj_step leaves positions from before its integration; refresh the kinematics so the
+        # camera pose belongs to the state at step k.
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+        self.cam_p[k] = self.data.cam_xpos[self.cam_id]
+        self.cam_R[k] = self.data.cam_xmat[self.cam_id].reshape(3, 3) @ R_OPT_MJCAM
+
+    def _imu_samples(self) -> np.ndarray:
+        """IMU rows for every sample time k (multiple of steps_per_imu) with k + 1 recorded."""
+        rows = []
+        while self._imu_next + 1 <= self.k:
+            k = self._imu_next
+            if k == 0:
+                km, kp = 0, 1                     # one-sided at the very start
+            else:
+                km, kp = k - 1, k + 1
+            h = (kp - km) * TIMESTEP
+            w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
+            if k == 0:
+                a_world = np.zeros(3)             # at rest at t = 0
+            else:
+                a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
+            f = self.cam_R[k].T @ (a_world - GRAVITY)
+            g_n, a_n, _ = self.noise
+            rows.append([k * TIMESTEP, *(w + self.rng.normal(0, g_n, 3)), *(f + self.rng.normal(0, a_n, 3))])
+            self._imu_next += self.steps_per_imu
+        return np.array(rows).reshape(-1, 7)
+
+    def _observe(self) -> Observation:
+        self.renderer.update_scene(self.data, camera=self.cam_id)
+        img = self.formation.form(self.renderer.render())
+        enc = self.data.qpos[self.qadr] + self.rng.normal(0, self.noise[2], 3) if self.noise[2] else self.data.qpos[self.qadr].copy()
+        return Observation(t=self.t, image=img, imu=self._imu_samples(), encoders=np.array(enc))
+
+    # ------------------------------------------------------------------ truth (evaluation only)
+    @property
+    def ground_truth(self) -> GroundTruth:
+        T = np.eye(4)
+        T[:3, :3] = self.cam_R[self.k]
+        T[:3, 3] = self.cam_p[self.k]
+        return GroundTruth(t=self.t, T_world_cam=T, q=self.data.qpos[self.qadr].copy(),
+                           T_world_mount=self.T_world_mount(self.t), command=self._command.copy())
+
+    def T_world_mount(self, t: float) -> np.ndarray:
+        return self.wearer.pose(self.ms, t) @ self.T_rest_mount
+
+    def scripted_command(self, t: float, q_current: np.ndarray) -> np.ndarray:
+        """The recording's head command: fixate the scenario's look-at point (uses ground truth:
+        a scripted camera, not a controller). Holds the current angles if unreachable."""
+        T = self.T_world_mount(t)
+        wearer_xy = T[:2, 3]
+        p_world = self.scenario.look_at(t, wearer_xy)
+        p_mount = T[:3, :3].T @ (p_world - T[:3, 3])
+        up_mount = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        res = gaze_at_point(self.head, p_mount, up_mount, q_current=q_current)
+        return res.q if res.reachable else np.asarray(q_current, float)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None

@@ -1,0 +1,139 @@
+"""The MuJoCo twin: target corners, ground truth composition, servo limits, IMU, determinism."""
+
+import dataclasses
+import filecmp
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kinematics import forward_kinematics, reference_head
+from kinematics.camera import CameraIntrinsics, default_camera, project
+from runtime.sequence import open_sequence
+from runtime.twin.mount import default_shoulder_mount
+from runtime.twin.recorder import record, target_in_first_frame
+from runtime.twin.twin import Twin
+from wvr.cli import make_twin, wearer_for
+
+
+@pytest.fixture(scope="module")
+def twin():
+    t = make_twin()
+    yield t
+    t.close()
+
+
+def refine(image, uv):
+    g = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    pts = uv.astype(np.float32).reshape(-1, 1, 2).copy()
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    return cv2.cornerSubPix(g, pts, (5, 5), (-1, -1), crit).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("scenario", ["workbench-static", "walk", "sit-down"])
+def test_target_corners_in_the_first_image_match_target_toml(twin, scenario):
+    obs = twin.reset(scenario, seed=1, seconds=0.5)
+    target = target_in_first_frame(twin)
+    assert np.all((target.uv > 20) & (target.uv < [620, 460])), "the target must be in view at start"
+    err = np.linalg.norm(refine(obs.image, target.uv) - target.uv, axis=1)
+    assert err.max() < 0.5, err
+
+
+def test_ground_truth_is_body_pose_times_mount_times_head_fk(twin):
+    obs = twin.reset("walk", seed=0, seconds=1.0)
+    for _ in range(10):
+        obs = twin.step(twin.scripted_command(obs.t, twin.filter.q))
+        gt = twin.ground_truth
+        T = twin.wearer.pose(twin.ms, gt.t) @ twin.T_rest_mount @ forward_kinematics(twin.head, gt.q).T_mount_cam
+        np.testing.assert_allclose(T, gt.T_world_cam, atol=1e-9)
+
+
+def test_commands_beyond_range_or_speed_are_clamped(twin):
+    twin.reset("workbench-static", seed=0, seconds=1.0, q0=np.zeros(3))
+    head = twin.head
+    prev = twin.ground_truth.command
+    dt = twin.steps_per_frame * 0.001
+    for cmd in ([5.0, -5.0, 5.0], [-4.0, 4.0, -4.0], [5.0, 5.0, 5.0]):
+        twin.step(cmd)
+        gt = twin.ground_truth
+        assert np.all(gt.command <= head.upper + 1e-12) and np.all(gt.command >= head.lower - 1e-12)
+        assert np.all(np.abs(gt.command - prev) <= head.max_speed * dt + 1e-12)
+        prev = gt.command
+    for _ in range(15):
+        twin.step([5.0, 5.0, 5.0])
+    gt = twin.ground_truth
+    np.testing.assert_allclose(gt.command, head.upper)
+    assert np.all(gt.q <= head.upper + 0.01)   # the simulated joint settles at the limit
+
+
+def test_imu_reads_gravity_at_rest(twin):
+    obs = twin.reset("workbench-static", seed=0, seconds=1.5)
+    rows = []
+    for _ in range(40):
+        obs = twin.step(twin.filter.q)             # the head holds still; the wearer only sways
+        rows.append(obs.imu)
+    imu = np.vstack(rows)[20:]
+    R = twin.ground_truth.T_world_cam[:3, :3]
+    a_world = R @ imu[:, 4:7].mean(axis=0)
+    np.testing.assert_allclose(a_world, [0, 0, 9.81], atol=0.05)   # up, 9.81 m/s^2
+    assert np.linalg.norm(imu[:, 1:4].mean(axis=0)) < 0.02         # barely turning
+
+
+def test_same_scenario_and_seed_give_the_same_files(tmp_path):
+    outs = []
+    for k in range(2):
+        t = make_twin()
+        try:
+            outs.append(record(t, "sit-down", tmp_path / f"run{k}", seconds=0.4, seed=3, progress=False))
+        finally:
+            t.close()
+    a, b = outs
+    names = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for n in names:
+        assert filecmp.cmp(a / n, b / n, shallow=False), n
+    seq = open_sequence(a)
+    assert len(seq) == 12 and seq.groundtruth is not None and seq.imu is not None and seq.target is not None
+
+
+def test_wide_angle_camera_renders_through_its_lens_model():
+    """A 320x240 radial-sqrt camera: the rendered corners still match the lens model's projection."""
+    cam = CameraIntrinsics(width=320, height=240, fx=195.0, fy=195.0, cx=162.0, cy=125.0, model="radial-sqrt",
+                           kd1=3e-6)
+    t = Twin(reference_head(), cam, default_shoulder_mount, wearer_for)
+    try:
+        obs = t.reset("workbench-static", seed=2, seconds=0.5)
+        target = target_in_first_frame(t)
+        assert obs.image.shape == (240, 320, 3)
+        err = np.linalg.norm(refine(obs.image, target.uv) - target.uv, axis=1)
+        assert err.max() < 0.5, err
+    finally:
+        t.close()
+
+
+def test_mount_toml_on_the_chest_and_bad_files(tmp_path):
+    from runtime.twin.mount import MountError, load_mount
+
+    good = tmp_path / "mount.toml"
+    good.write_text('[mount]\nzone = "chest"\nsegment = "chest"\nposition_m = [0.0, -0.14, 0.06]\n'
+                    'forward = [0.0, -1.0, 0.0]\nup = [0.0, 0.0, 1.0]\nnormal = [0.0, -1.0, 0.0]\n')
+    t = Twin(reference_head(), default_camera(), load_mount(good), wearer_for)
+    try:
+        t.reset("workbench-static", seed=0, seconds=0.3)
+        target = target_in_first_frame(t)           # in view from the chest too
+        assert np.all(np.isfinite(target.uv))
+        # The mount is where mount.toml says, on the moving chest.
+        T = t.wearer.pose(t.ms, 0.0)
+        chest = t.wearer.joints[t.wearer.index("chest")]
+        np.testing.assert_allclose(t.T_world_mount(0.0)[:3, 3], T[:3, :3] @ (chest + [0, -0.14, 0.06]) + T[:3, 3])
+    finally:
+        t.close()
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[mount]\nsegment = "chest"\nposition_m = [0.0, -0.14]\nforward = [0, -1, 0]\nup = [0, 0, 1]\n')
+    with pytest.raises(MountError, match="position_m must be 3 finite numbers"):
+        load_mount(bad)
+    bad.write_text('[mount]\nsegment = "chest"\nposition_m = [0, 0, 0]\nforward = [0, 0, 1]\nup = [0, 0, 1]\n')
+    with pytest.raises(MountError, match="parallel"):
+        load_mount(bad)
