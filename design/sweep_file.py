@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kinematics import SERVO_CATALOGUE
+from kinematics.tomlfile import read_toml
 
 #: The seven criteria, all minimised, named exactly so in every output (paper, section 2).
 CRITERIA = (
@@ -195,13 +196,7 @@ def load_sweep(path: str | Path | None = None) -> SweepSpec:
     """Read and validate a sweep.toml; ``None`` gives the shipped default sweep."""
     if path is None:
         return spec_from_dict(tomllib.loads(default_sweep_text()), "default_sweep.toml")
-    path = Path(path)
-    if not path.exists():
-        raise SweepFileError(f"{path}: no such file; give a sweep.toml (see: wvr design sweep-template)")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise SweepFileError(f"{path}: not valid TOML ({e})") from None
+    d = read_toml(path, SweepFileError, "a sweep.toml (see: wvr design sweep-template)")
     return spec_from_dict(d, str(path))
 
 

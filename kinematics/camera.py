@@ -48,13 +48,14 @@ import functools
 import json
 import math
 import numbers
-import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 import tomli_w
+
+from .tomlfile import read_toml
 
 #: Distortion terms each lens model takes, in the order OpenCV lists them.
 LENS_MODELS: dict[str, tuple[str, ...]] = {
@@ -275,13 +276,7 @@ def _camera_table(d: Mapping) -> dict:
 
 def load_camera(path: str | Path) -> CameraIntrinsics:
     """Read and validate a camera.toml (shared/formats.md). Errors name the file."""
-    path = Path(path)
-    if not path.exists():
-        raise CameraFileError(f"{path}: no such file; give the path of a camera.toml")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise CameraFileError(f"{path}: not valid TOML ({e})") from None
+    d = read_toml(path, CameraFileError, "the path of a camera.toml")
     return CameraIntrinsics.from_dict(d, source=str(path))
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from .tomlfile import read_toml
 from .servo_models import SERVO_CATALOGUE, ServoModel, servo_from_dict
 
 JOINT_NAMES: tuple[str, str, str] = ("elevation", "pan", "cyclotorsion")
@@ -363,13 +364,7 @@ def load_head(path: str | Path) -> HeadGeometry:
     """Read and validate a head.toml. ``"reference"`` loads the shipped reference head."""
     if str(path) == "reference":
         return reference_head()
-    path = Path(path)
-    if not path.exists():
-        raise HeadFileError(f"{path}: no such file; give a head.toml path or 'reference'")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise HeadFileError(f"{path}: not valid TOML ({e})") from None
+    d = read_toml(path, HeadFileError, "a head.toml path or 'reference'")
     return HeadGeometry.from_dict(d, source=str(path))
 
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 import math
 import numbers
 import os
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence as _Seq, TextIO
@@ -44,6 +43,7 @@ import tomli_w
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, load_camera, save_camera
+from kinematics.tomlfile import read_toml
 
 # Column layouts of the text files (the '#' header line each writer puts at the top).
 TRAJECTORY_COLUMNS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -436,12 +436,7 @@ def load_target(path: str | Path) -> Target:
     """Read and check a target.toml: at least 4 [[point]] tables, each with exactly
     xyz (3 numbers, metres, world frame) and uv (2 numbers, pixels in the first frame)."""
     path = Path(path)
-    if not path.is_file():
-        raise SequenceError(f"{path}: no such file; give the path of a target.toml")
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise SequenceError(f"{path}: not valid TOML ({e})") from None
+    doc = read_toml(path, SequenceError, "the path of a target.toml")
     for k in doc:
         if k != "point":
             raise SequenceError(f"{path}: unknown top-level key {k!r}; target.toml holds only "

@@ -180,11 +180,19 @@ def make_twin(head_path=None, mount_path=None, camera_path=None):
 
 
 def cmd_sim_record(args) -> int:
-    from runtime.twin.recorder import record
+    from dataclasses import replace
 
+    from runtime.twin.recorder import record
+    from runtime.twin.scenarios import get_scenario
+
+    scenario = get_scenario(args.scenario)
+    if args.dim_to is not None:
+        if not 0.0 <= args.dim_to <= 1.0:
+            raise ValueError(f"--dim-to {args.dim_to}: give the final light level as a fraction 0..1")
+        scenario = replace(scenario, dim_to=args.dim_to)
     twin = make_twin(args.head, args.mount, args.camera)
     try:
-        out = record(twin, args.scenario, args.out, seconds=args.seconds, seed=args.seed)
+        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed)
     finally:
         twin.close()
     print(f"recorded {args.scenario} into {out}")
@@ -272,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--head", help="head.toml (default: chosen_head.toml if given, else the reference head)")
     rec.add_argument("--mount", help="mount.toml from wvr placement map (default: on the right shoulder)")
     rec.add_argument("--camera", help="camera.toml (default: 640x480, f = 514.7 px)")
+    rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.set_defaults(func=cmd_sim_record)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")

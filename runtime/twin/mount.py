@@ -8,11 +8,12 @@ mount frame is the head's (x forward, y left, z up when worn upright): z is ``up
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from kinematics.tomlfile import read_toml
 
 
 class MountError(ValueError):
@@ -43,12 +44,7 @@ _KEYS = {"zone", "segment", "polygon", "position_m", "up", "forward", "normal", 
 
 def load_mount(path: str | Path) -> Mount:
     path = Path(path)
-    if not path.exists():
-        raise MountError(f"{path}: no such file; give a mount.toml written by 'wvr placement map'")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise MountError(f"{path}: not valid TOML ({e})") from None
+    d = read_toml(path, MountError, "a mount.toml written by 'wvr placement map'")
     m = d.get("mount")
     if not isinstance(m, dict):
         raise MountError(f"{path}: missing the [mount] table")

@@ -32,9 +32,9 @@ def target_in_first_frame(twin: Twin) -> Target:
     return Target(xyz=xyz, uv=uv)
 
 
-def record(twin: Twin, scenario: str, out: str | Path, seconds: float | None = None, seed: int = 0,
+def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, seed: int = 0,
            progress: bool = True) -> Path:
-    """Run a scenario with its scripted head and write the sequence to ``out``."""
+    """Run a scenario (a name or a Scenario) with its scripted head and write the sequence to ``out``."""
     out = Path(out)
     obs = twin.reset(scenario, seed=seed, seconds=seconds)
     n_frames = int(round(twin.seconds * twin.frame_rate))

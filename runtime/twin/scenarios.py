@@ -38,10 +38,11 @@ class Scenario:
         T[:2, 3] = self.body_xy
         return T
 
-    def light_at(self, t: float) -> float:
+    def light_at(self, t: float, duration: float | None = None) -> float:
+        """Light scale at time t; a dimming ramp runs over ``duration`` (default the scenario's)."""
         if self.dim_to is None:
             return self.light
-        a = min(max(t / self.seconds, 0.0), 1.0)
+        a = min(max(t / (duration or self.seconds), 0.0), 1.0)
         return (1 - a) * self.light + a * self.dim_to
 
     def look_at(self, t: float, wearer_xy: np.ndarray) -> np.ndarray:

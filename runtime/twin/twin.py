@@ -168,7 +168,7 @@ class Twin:
         cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
         self._command = cmd
         start = self._cmd_prev
-        self.set_light(self.scenario.light_at(self.t))
+        self.set_light(self.scenario.light_at(self.t, self.seconds))
         if self.k + self.steps_per_frame >= len(self.step_times):
             raise RuntimeError(f"the scenario was prepared for {self.seconds:g} s; reset with a longer 'seconds'")
         for i in range(1, self.steps_per_frame + 1):
