@@ -158,7 +158,14 @@ def open_client(workers: int | None = None, scheduler: str | None = None):
 
     if scheduler is not None:
         return Client(scheduler)
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
+    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc hand
+    # memory back after every large temporary array; the voxel sweep allocates many, and the
+    # page faults halve a worker's evaluation rate (measured: 5.8 against 10.5 per second).
+    # Let the workers keep freed memory, as a plain process does.
+    import dask
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(1 << 30)}):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     return Client(cluster)
 
 

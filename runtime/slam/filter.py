@@ -128,7 +128,9 @@ def update(state: State, k_list, z, cam: CameraIntrinsics, R_pix,
     R_blocks = _pixel_covariances(R_pix, m)
     if m == 0:
         return UpdateResult(np.zeros((0, 2)), np.zeros((0, 0)), np.zeros((0, 2)))
-    R = scipy.linalg.block_diag(*R_blocks)
+    R = np.zeros((2 * m, 2 * m))
+    for i in range(m):
+        R[2 * i:2 * i + 2, 2 * i:2 * i + 2] = R_blocks[i]
 
     uv, Hc, idx = _predict_measurements(state, ks, cam)
     nu = (z - uv).reshape(-1)
@@ -137,11 +139,13 @@ def update(state: State, k_list, z, cam: CameraIntrinsics, R_pix,
     S = Hc @ PHt[idx, :] + R
     S = 0.5 * (S + S.T)
     try:
-        S_chol = scipy.linalg.cho_factor(S, check_finite=True)
-    except (np.linalg.LinAlgError, ValueError):
+        if not np.isfinite(S).all():
+            raise np.linalg.LinAlgError
+        S_chol = scipy.linalg.cho_factor(S, check_finite=False)
+    except np.linalg.LinAlgError:
         raise SlamNumericalError(f"innovation covariance S of features {ks.tolist()} is not positive "
                                  f"definite (or not finite); update refused") from None
-    K = scipy.linalg.cho_solve(S_chol, PHt.T).T  # (n, 2m)
+    K = scipy.linalg.cho_solve(S_chol, PHt.T, check_finite=False).T  # (n, 2m)
 
     x = state.x + K @ nu
     # Joseph form with H kept compact: A = (I - K H) P, then A (I - K H)^T + K R K^T.
