@@ -291,7 +291,7 @@ def check_covariance(P: np.ndarray, where: str = "", cfg: SlamConfig = DEFAULT_C
     if cfg.check_psd and d.size:
         try:
             Pt = P.copy()
-            Pt[np.diag_indices_from(Pt)] += tol
+            Pt.flat[::len(Pt) + 1] += tol
             np.linalg.cholesky(Pt)
         except np.linalg.LinAlgError:
             lam = np.linalg.eigvalsh(P)

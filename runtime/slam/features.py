@@ -1,0 +1,43 @@
+"""New features (paper, section 4.1): Shi-Tomasi corners (OpenCV) in image regions that hold no
+feature yet, each stored with its 15 x 15 appearance template."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .search import HALF, extract_template
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """(H, W) float32 grey image from grey or RGB uint8."""
+    g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return g.astype(np.float32)
+
+
+def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, min_distance: float = 30.0,
+                     border: int = 20, quality: float = 0.01) -> np.ndarray:
+    """(k, 2) up to n Shi-Tomasi corners at least ``min_distance`` px from every occupied
+    position (existing features, their predictions) and ``border`` px from the image edge,
+    strongest first."""
+    H, W = image_grey.shape
+    mask = np.zeros((H, W), np.uint8)
+    mask[border:H - border, border:W - border] = 255
+    for u, v in np.asarray(occupied_uv, float).reshape(-1, 2):
+        if np.isfinite(u) and np.isfinite(v):
+            cv2.circle(mask, (int(round(u)), int(round(v))), int(min_distance), 0, -1)
+    pts = cv2.goodFeaturesToTrack(image_grey.astype(np.float32), maxCorners=n, qualityLevel=quality,
+                                  minDistance=min_distance, mask=mask, blockSize=5, useHarrisDetector=False)
+    if pts is None:
+        return np.empty((0, 2))
+    return pts.reshape(-1, 2).astype(float)
+
+
+def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(uv (2,), template (15, 15))] for up to n new corners (corners too near the border skipped)."""
+    out = []
+    for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), HALF + 1), **kw):
+        t = extract_template(image_grey, uv)
+        if t is not None and t.std() > 2.0:   # a flat patch cannot be matched
+            out.append((np.round(uv), t))
+    return out

@@ -1,0 +1,66 @@
+"""Active search and new features against synthetic images with known answers."""
+
+import cv2
+import numpy as np
+
+from runtime.slam.features import find_new_corners, grey, new_features
+from runtime.slam.search import extract_template, search
+
+
+def textured(seed=0, size=(240, 320)):
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, size).astype(np.float32), (0, 0), 1.0)
+    return img
+
+
+def test_search_finds_a_shifted_patch_to_subpixel():
+    img = textured()
+    t = extract_template(img, (160, 120))
+    # Shift the image by a known sub-pixel amount: the template now sits at (160 + dx, 120 + dy).
+    dx, dy = 3.3, -2.6
+    M = np.float32([[1, 0, dx], [0, 1, dy]])
+    moved = cv2.warpAffine(img, M, (320, 240), flags=cv2.INTER_CUBIC)
+    m = search(moved, t, np.array([160.0, 120.0]), np.diag([16.0, 16.0]))
+    assert m.found
+    np.testing.assert_allclose(m.uv, [160 + dx, 120 + dy], atol=0.2)
+
+
+def test_search_stays_inside_the_ellipse():
+    img = textured(1)
+    t = extract_template(img, (100, 100))
+    # The true match lies 20 px away but the ellipse is 3 px wide: it must not be found.
+    m = search(img, t, np.array([120.0, 100.0]), np.diag([1.0, 1.0]))
+    assert np.linalg.norm(m.uv - [120, 100]) <= 3.0 + 1e-9
+    assert not m.found
+    # A wide ellipse finds it.
+    assert search(img, t, np.array([120.0, 100.0]), np.diag([64.0, 64.0])).found
+
+
+def test_huge_or_outside_ellipses_are_not_searched():
+    img = textured(2)
+    t = extract_template(img, (50, 50))
+    assert not search(img, t, np.array([50.0, 50.0]), np.diag([1e8, 1e8])).found
+    assert not search(img, t, np.array([-500.0, 50.0]), np.diag([4.0, 4.0])).found
+
+
+def test_new_corners_avoid_occupied_regions_and_borders():
+    img = np.zeros((240, 320), np.float32)
+    for x in range(40, 300, 40):
+        for y in range(40, 220, 40):
+            img[y:y + 10, x:x + 10] = 255
+    occupied = np.array([[100.0, 100.0]])
+    pts = find_new_corners(img, occupied, 50, min_distance=25)
+    assert len(pts) > 10
+    assert np.min(np.linalg.norm(pts - occupied, axis=1)) >= 25
+    assert pts[:, 0].min() >= 20 and pts[:, 1].min() >= 20
+    feats = new_features(img, occupied, 10)
+    assert all(f[1].shape == (15, 15) for f in feats)
+    assert grey(np.zeros((4, 4, 3), np.uint8)).shape == (4, 4)
+
+
+def test_score_ignores_gain_and_offset_of_the_lighting():
+    img = textured(3)
+    t = extract_template(img, (200, 150))
+    m = search(0.6 * img + 20.0, t, np.array([201.0, 149.0]), np.diag([9.0, 9.0]))
+    assert m.found and m.score < 1e-3
+    np.testing.assert_allclose(m.uv, [200, 150], atol=0.05)
