@@ -199,6 +199,32 @@ def cmd_sim_record(args) -> int:
     return 0
 
 
+def cmd_slam(args) -> int:
+    from runtime.slam.run import run_slam
+
+    totals = run_slam(args.seq, args.out, max_frames=args.max_frames, video=args.video)
+    print(f"{totals['frames']} frames ({totals['skipped']} skipped), {totals['features']} features in the map, "
+          f"{totals['mean_matched']:.1f} matched per frame, {totals['mean_ms_per_frame']:.1f} ms per frame"
+          + ("; track was LOST for " + str(totals["lost_frames"]) + " frames" if totals["lost"] else ""))
+    print(f"wrote {Path(args.out) / 'trajectory.tum'}, map.csv, stats.json")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from runtime.sequence import open_sequence, read_trajectory
+    from runtime.slam.eval import trajectory_errors
+
+    seq = open_sequence(args.seq)
+    if seq.groundtruth is None:
+        raise ValueError(f"{args.seq}: no groundtruth.txt to evaluate against")
+    e = trajectory_errors(read_trajectory(Path(args.result) / "trajectory.tum"), seq.groundtruth)
+    print(f"poses matched: {e.matched}")
+    print(f"ATE (no alignment): RMSE {100 * e.ate_rmse_m:.2f} cm, max {100 * e.ate_max_m:.2f} cm")
+    print(f"ATE (SE3-aligned):  RMSE {100 * e.ate_aligned_rmse_m:.2f} cm, max {100 * e.ate_aligned_max_m:.2f} cm")
+    print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -282,6 +308,17 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera", help="camera.toml (default: 640x480, f = 514.7 px)")
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.set_defaults(func=cmd_sim_record)
+
+    sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")
+    sl.add_argument("seq", help="sequence folder (TUM layout with camera.toml and target.toml)")
+    sl.add_argument("--out", required=True, help="output directory")
+    sl.add_argument("--max-frames", type=int, help="stop after N frames")
+    sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles)")
+    sl.set_defaults(func=cmd_slam)
+    ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
+    ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
+    ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
+    ev2.set_defaults(func=cmd_eval)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
     demo.add_argument("--out", required=True, help="output directory")

@@ -1,0 +1,289 @@
+"""MonoSLAM for the wearable (paper, section 4): the per-frame loop over the EKF.
+
+Each frame: predict with the constant-velocity model; predict which map features are visible
+(projection well inside the image, viewing angle and range close enough to the first view for
+the template to be valid); measure them one at a time, most uncertain first, each searched
+only inside its 3-sigma ellipse and each update shrinking the ellipses of those after it;
+refine the depth particles of features still being initialised and promote those whose depth
+pdf has become Gaussian; delete features whose long-term ratio of successful to attempted
+measurements falls below 1:2; and, when 5 or fewer features were measured, start new ones on
+Shi-Tomasi corners in empty parts of the image. Start-up: the known target points fix the world
+frame and scale (their pose by PnP, then inserted as features with small covariance).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from kinematics.camera import CameraIntrinsics, in_image, undistort
+
+from ..sequence import Target
+from . import depth_init
+from .features import grey, new_features
+from .filter import FeatureNotMeasurable, add_point_feature, innovation_covariances, update_one
+from .measurement import h_and_jacobians_many, ray_from_pixel
+from .motion import predict
+from .search import extract_template, search
+from .state import CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, quat_to_rotation
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """Map management and initialisation parameters (paper, sections 4.2 and 4.3)."""
+
+    particles: int = 100
+    depth_near_m: float = 0.5
+    depth_far_m: float = 5.0
+    gauss_ratio: float = 0.3          # promote a ray when std(depth) < 0.3 mean(depth)
+    prune: float = 0.01               # drop particles below 1% of the strongest
+    max_init_frames: int = 30         # give up on a ray that has not converged by then
+    add_below: int = 6                # add features when fewer than 6 (5 or fewer) were measured
+    max_initialising: int = 3
+    delete_min_attempts: int = 10
+    delete_ratio: float = 0.5         # successful : attempted below 1:2 deletes
+    max_view_angle_deg: float = 45.0
+    max_range_ratio: float = 1.4
+    margin_px: float = 12.0
+    match_score: float = 0.4          # zero-mean normalised SSD accepting a match
+    lost_after: int = 10              # frames with fewer than 3 matches before "lost"
+    target_sigma_m: float = 0.001
+    init_sigma_v: float = 0.3         # initial velocity uncertainty, m/s
+    init_sigma_w: float = 0.5         # initial angular velocity uncertainty, rad/s
+
+
+@dataclass
+class MapFeature:
+    id: int
+    template: np.ndarray
+    first_frame: int
+    r0: np.ndarray                 # camera centre at the first view
+    known: bool = False            # a target point
+    attempts: int = 0
+    successes: int = 0
+
+
+@dataclass
+class FrameStats:
+    frame: int
+    t: float
+    predicted: int = 0
+    searched: int = 0
+    matched: int = 0
+    added: int = 0
+    deleted: int = 0
+    initialising: int = 0
+    seconds: float = 0.0
+    lost: bool = False
+    skipped: str = ""
+
+
+class SlamStartError(ValueError):
+    """The target cannot start SLAM (not in view, degenerate); the message says why."""
+
+
+def _pinhole_normalised(cam: CameraIntrinsics, uv: np.ndarray) -> np.ndarray:
+    return undistort(cam, np.asarray(uv, float).reshape(-1, 2))
+
+
+class MonoSLAM:
+    """Single-camera EKF SLAM over a sequence of images."""
+
+    def __init__(self, camera: CameraIntrinsics, cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings()):
+        self.cam = camera
+        self.cfg = cfg
+        self.s = settings
+        self.state: State | None = None
+        self.features: list[MapFeature] = []
+        self.rays: list[tuple[int, depth_init.DepthParticles]] = []
+        self.next_id = 0
+        self.frame = -1
+        self.t_prev = None
+        self.low_matches = 0
+        self.stats: list[FrameStats] = []
+
+    # -------------------------------------------------------------- start-up
+    def start(self, image: np.ndarray, t: float, target: Target) -> None:
+        """Fix the world frame from the known target in the first image."""
+        g = grey(image)
+        xy = _pinhole_normalised(self.cam, target.uv)
+        if not np.all(np.isfinite(xy)):
+            raise SlamStartError("target.toml: a target point's pixel has no ray through the lens model")
+        ok, rvec, tvec = cv2.solvePnP(target.xyz.astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+                                      flags=cv2.SOLVEPNP_IPPE if len(target.xyz) == 4 else cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise SlamStartError("target.toml: PnP found no camera pose for the target points; check xyz and uv")
+        R_cw, _ = cv2.Rodrigues(rvec)
+        R_wc = R_cw.T
+        r = -R_wc @ tvec.ravel()
+        from scipy.spatial.transform import Rotation
+        x, y, z, w = Rotation.from_matrix(R_wc).as_quat()
+        x_v = np.concatenate([r, [w, x, y, z], np.zeros(6)])
+        P = np.diag(np.r_[np.full(3, 1e-6), np.full(4, 1e-6), np.full(3, self.s.init_sigma_v**2),
+                          np.full(3, self.s.init_sigma_w**2)])
+        self.state = State.from_camera(x_v, P)
+        # Reprojection check: the target must be in front and where the file says.
+        uv, _, _, valid = h_and_jacobians_many(x_v, target.xyz, self.cam)
+        err = np.linalg.norm(uv - target.uv, axis=1)
+        if not valid.all() or err.max() > 5.0:
+            raise SlamStartError(f"target.toml: the target points do not fit one camera pose (reprojection error "
+                                 f"{np.nanmax(err):.1f} px); check that uv are their pixels in the first frame")
+        for X, p in zip(target.xyz, target.uv):
+            tpl = extract_template(g, p)
+            if tpl is None:
+                raise SlamStartError(f"target point at pixel {p.round(1).tolist()} is too close to the image border "
+                                     "to take its template; the target must be in view at the start")
+            self.state.add_feature(X, np.eye(3) * self.s.target_sigma_m**2, np.zeros((3, self.state.n)), self.cfg)
+            self.features.append(MapFeature(self.next_id, tpl, 0, r.copy(), known=True))
+            self.next_id += 1
+        self.frame = 0
+        self.t_prev = t
+        self.stats.append(FrameStats(0, t, matched=len(target.xyz)))
+
+    # -------------------------------------------------------------- per frame
+    def process(self, image: np.ndarray, t: float) -> FrameStats:
+        t0 = time.perf_counter()
+        self.frame += 1
+        st = FrameStats(self.frame, t)
+        g = grey(image)
+        dt = t - self.t_prev
+        self.t_prev = t
+        predict(self.state, dt, self.cfg)
+        self._measure(g, st)
+        self._refine_rays(g, st)
+        self._delete(st)
+        if st.matched < self.s.add_below and len(self.rays) < self.s.max_initialising:
+            self._start_rays(g, st)
+        self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
+        st.lost = self.low_matches >= self.s.lost_after
+        st.initialising = len(self.rays)
+        st.seconds = time.perf_counter() - t0
+        self.stats.append(st)
+        return st
+
+    def skip(self, t: float, why: str) -> FrameStats:
+        """A frame that could not be read: predict through it, count it."""
+        self.frame += 1
+        predict(self.state, t - self.t_prev, self.cfg)
+        self.t_prev = t
+        st = FrameStats(self.frame, t, skipped=why, lost=self.low_matches >= self.s.lost_after)
+        self.stats.append(st)
+        return st
+
+    def _visible(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ks = np.arange(self.state.n_features)
+        if len(ks) == 0:
+            return ks, np.empty((0, 2)), np.empty((0, 2, 2))
+        uv, S, valid = innovation_covariances(self.state, ks, self.cam, self.cfg.R_pix)
+        ok = valid & in_image(self.cam, np.nan_to_num(uv, nan=-1e9), margin=self.s.margin_px)
+        Y = self.state.features
+        r = self.state.r
+        for k in np.flatnonzero(ok):
+            f = self.features[k]
+            a, b = Y[k] - r, Y[k] - f.r0
+            na, nb = np.linalg.norm(a), np.linalg.norm(b)
+            ratio = na / max(nb, 1e-9)
+            angle = math.degrees(math.acos(np.clip(a @ b / max(na * nb, 1e-12), -1, 1)))
+            if angle > self.s.max_view_angle_deg or not (1 / self.s.max_range_ratio <= ratio <= self.s.max_range_ratio):
+                ok[k] = False
+        return ks[ok], uv[ok], S[ok]
+
+    def _measure(self, g: np.ndarray, st: FrameStats) -> None:
+        ks, uv, S = self._visible()
+        st.predicted = len(ks)
+        order = ks[np.argsort(-np.linalg.det(S), kind="stable")] if len(ks) else ks
+        for k in order:
+            # Recompute this feature's ellipse: the updates before it have shrunk it.
+            uv_k, S_k, valid = innovation_covariances(self.state, [k], self.cam, self.cfg.R_pix)
+            if not valid[0]:
+                continue
+            f = self.features[k]
+            st.searched += 1
+            f.attempts += 1
+            m = search(g, f.template, uv_k[0], S_k[0], max_score=self.s.match_score)
+            if not m.found:
+                continue
+            try:
+                update_one(self.state, int(k), m.uv, self.cam, self.cfg.R_pix, self.cfg)
+            except (FeatureNotMeasurable, SlamNumericalError):
+                continue
+            f.successes += 1
+            st.matched += 1
+
+    def _refine_rays(self, g: np.ndarray, st: FrameStats) -> None:
+        x_v = self.state.x_v
+        P_vv = self.state.P[:CAMERA_DIM, :CAMERA_DIM]
+        R = self.cfg.R_pix
+        keep = []
+        for fid, p in self.rays:
+            def project(points):
+                uv, H_x, _, valid = h_and_jacobians_many(x_v, points, self.cam)
+                S = np.full((len(points), 2, 2), np.nan)
+                S[valid] = H_x[valid] @ P_vv @ np.swapaxes(H_x[valid], 1, 2) + R
+                return uv, S
+
+            def match(uv, S):
+                ok = np.isfinite(uv).all(axis=1) & np.isfinite(S).all(axis=(1, 2))
+                if not ok.any():
+                    return None
+                # One search over the box the particles' ellipses cover (the epipolar band).
+                lo = (uv[ok] - 3 * np.sqrt(S[ok][:, [0, 1], [0, 1]])).min(axis=0)
+                hi = (uv[ok] + 3 * np.sqrt(S[ok][:, [0, 1], [0, 1]])).max(axis=0)
+                c = (lo + hi) / 2
+                half = (hi - lo) / 2
+                m = search(g, p.template, c, np.diag((half / 3) ** 2) + 1e-9, n_sigma=3.0,
+                           max_score=self.s.match_score, max_area=120_000)
+                return m.uv if m.found else None
+
+            depth_init.step(p, project, match, self.s.prune)
+            if p.is_gaussian(self.s.gauss_ratio) and p.frames >= 2:
+                self._promote(fid, p, st)
+            elif p.frames < self.s.max_init_frames and p.failures < 10 and len(p.depths) > 0:
+                keep.append((fid, p))
+        self.rays = keep
+
+    def _promote(self, fid: int, p: depth_init.DepthParticles, st: FrameStats) -> None:
+        y = p.origin + p.mean * p.direction
+        x_v = self.state.x_v
+        uv, _, _, valid = h_and_jacobians_many(x_v, y[None], self.cam)
+        if not valid[0]:
+            return
+        depth = float(np.linalg.norm(y - self.state.r))
+        try:
+            add_point_feature(self.state, uv[0], depth, p.std**2, self.cfg.R_pix, self.cam, self.cfg)
+        except SlamNumericalError:
+            return
+        self.features.append(MapFeature(fid, p.template, self.frame, self.state.r.copy()))
+        st.added += 1
+
+    def _delete(self, st: FrameStats) -> None:
+        for k in range(len(self.features) - 1, -1, -1):
+            f = self.features[k]
+            if f.attempts >= self.s.delete_min_attempts and f.successes < self.s.delete_ratio * f.attempts:
+                self.state.remove_feature(k)
+                del self.features[k]
+                st.deleted += 1
+
+    def _start_rays(self, g: np.ndarray, st: FrameStats) -> None:
+        occupied = [p.uv0 for _, p in self.rays]
+        if self.state.n_features:
+            uv, _, _, valid = h_and_jacobians_many(self.state.x_v, self.state.features, self.cam)
+            occupied += list(uv[valid])
+        n = self.s.max_initialising - len(self.rays)
+        for uv, tpl in new_features(g, np.array(occupied).reshape(-1, 2), n):
+            origin, d = ray_from_pixel(self.state.x_v, uv, self.cam)[:2]
+            p = depth_init.DepthParticles.create(origin, d, tpl, uv, self.s.particles, self.s.depth_near_m,
+                                                 self.s.depth_far_m)
+            self.rays.append((self.next_id, p))
+            self.next_id += 1
+
+    # -------------------------------------------------------------- outputs
+    def T_world_cam(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = quat_to_rotation(self.state.q)
+        T[:3, 3] = self.state.r
+        return T
