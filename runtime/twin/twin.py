@@ -19,6 +19,7 @@ wearer's motion is what the IMU must sense.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from typing import Callable
 
@@ -37,6 +38,23 @@ from .scene import HEAD_PREFIX, TIMESTEP, WEARER_PREFIX, build_scene
 from .wearer import Wearer
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+
+
+def _egl_display_ready() -> None:
+    """Re-initialise MuJoCo's EGL display before making a renderer.
+
+    MuJoCo opens one EGL display per process when first asked; another EGL user in the same
+    process (VTK, for pyvista's pictures) may terminate that display when it closes its window,
+    after which MuJoCo's next context fails with EGL_NOT_INITIALIZED. eglInitialize on a live
+    display is harmless, so do it every time.
+    """
+    if os.environ.get("MUJOCO_GL") != "egl":
+        return
+    from mujoco import egl
+    from OpenGL import EGL
+
+    if egl.EGL_DISPLAY is not None:   # None until MuJoCo's first context opens it
+        EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
 
 
 @dataclass
@@ -120,6 +138,7 @@ class Twin:
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
         rc = self.formation.render_camera
+        _egl_display_ready()
         self.renderer = mujoco.Renderer(self.model, rc.height, rc.width)
         self.cam_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, HEAD_PREFIX + "camera")
         self.qadr = np.array([self.model.jnt_qposadr[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, HEAD_PREFIX + n)]

@@ -137,3 +137,20 @@ def test_mount_toml_on_the_chest_and_bad_files(tmp_path):
     bad.write_text('[mount]\nsegment = "chest"\nposition_m = [0, 0, 0]\nforward = [0, 0, 1]\nup = [0, 0, 1]\n')
     with pytest.raises(MountError, match="parallel"):
         load_mount(bad)
+
+
+def test_twin_renders_after_pyvista_has_closed_its_egl_window(tmp_path):
+    """VTK terminates the process's EGL display when its window closes; the twin must recover."""
+    import pyvista as pv
+
+    t = make_twin()
+    try:
+        t.reset("workbench-static", seed=0, seconds=0.2)
+        p = pv.Plotter(off_screen=True)
+        p.add_mesh(pv.Cube())
+        p.screenshot(str(tmp_path / "cube.png"))
+        p.close()
+        obs = t.reset("workbench-static", seed=0, seconds=0.2)
+        assert obs.image.std() > 10
+    finally:
+        t.close()
