@@ -133,8 +133,7 @@ class Twin:
             stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
         xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
                                   stool=stool)
-        if self.renderer is not None:
-            self.renderer.close()
+        self._close_renderer()
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
         rc = self.formation.render_camera
@@ -274,7 +273,19 @@ class Twin:
         res = gaze_at_point(self.head, p_mount, up_mount, q_current=q_current)
         return res.q if res.reachable else np.asarray(q_current, float)
 
-    def close(self) -> None:
-        if self.renderer is not None:
+    def _close_renderer(self) -> None:
+        if self.renderer is None:
+            return
+        _egl_display_ready()
+        try:
             self.renderer.close()
-            self.renderer = None
+        except Exception as e:  # noqa: BLE001 - only EGL errors are expected here
+            from OpenGL.error import Error as GLError
+
+            if not isinstance(e, GLError):
+                raise
+            # Its context died with a display another library terminated: nothing left to free.
+        self.renderer = None
+
+    def close(self) -> None:
+        self._close_renderer()
