@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -29,7 +29,8 @@ from .filter import FeatureNotMeasurable, add_point_feature, innovation_covarian
 from .measurement import h_and_jacobians_many, ray_from_pixel
 from .motion import predict
 from .search import extract_template, search
-from .state import CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, quat_to_rotation
+from .state import (CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, check_covariance,
+                    quat_to_rotation)
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,10 @@ class MonoSLAM:
     def __init__(self, camera: CameraIntrinsics, cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings()):
         self.cam = camera
         self.cfg = cfg
+        # Within a frame the filter keeps P finite and symmetric after every step; the full
+        # positive-semi-definiteness check (a Cholesky of all of P) runs once per frame, where
+        # it costs one factorisation instead of one per measured feature.
+        self._step_cfg = replace(cfg, check_psd=False)
         self.s = settings
         self.state: State | None = None
         self.features: list[MapFeature] = []
@@ -152,12 +157,13 @@ class MonoSLAM:
         g = grey(image)
         dt = t - self.t_prev
         self.t_prev = t
-        predict(self.state, dt, self.cfg)
+        predict(self.state, dt, self._step_cfg)
         self._measure(g, st)
         self._refine_rays(g, st)
         self._delete(st)
         if st.matched < self.s.add_below and len(self.rays) < self.s.max_initialising:
             self._start_rays(g, st)
+        self.state.P = check_covariance(self.state.P, f"frame {self.frame}", self.cfg)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
         st.lost = self.low_matches >= self.s.lost_after
         st.initialising = len(self.rays)
@@ -208,7 +214,7 @@ class MonoSLAM:
             if not m.found:
                 continue
             try:
-                update_one(self.state, int(k), m.uv, self.cam, self.cfg.R_pix, self.cfg)
+                update_one(self.state, int(k), m.uv, self.cam, self.cfg.R_pix, self._step_cfg)
             except (FeatureNotMeasurable, SlamNumericalError):
                 continue
             f.successes += 1
@@ -254,7 +260,7 @@ class MonoSLAM:
             return
         depth = float(np.linalg.norm(y - self.state.r))
         try:
-            add_point_feature(self.state, uv[0], depth, p.std**2, self.cfg.R_pix, self.cam, self.cfg)
+            add_point_feature(self.state, uv[0], depth, p.std**2, self.cfg.R_pix, self.cam, self._step_cfg)
         except SlamNumericalError:
             return
         self.features.append(MapFeature(fid, p.template, self.frame, self.state.r.copy()))
