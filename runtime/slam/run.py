@@ -34,7 +34,7 @@ def _annotate(image: np.ndarray, slam: MonoSLAM) -> np.ndarray:
             if abs(c[0]) < 10000 and abs(c[1]) < 10000:
                 cv2.ellipse(img, c, axes, ang, 0, 360, colour, 1)
                 cv2.circle(img, c, 2, colour, -1)
-    for _, p in slam.rays:
+    for _, p, *_ in slam.rays:
         uv, _, _, valid = h_and_jacobians_many(st.x_v, p.points(), slam.cam)
         for q in uv[valid]:
             if np.all(np.abs(q) < 10000):

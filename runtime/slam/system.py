@@ -28,6 +28,7 @@ from .features import grey, new_features
 from .filter import FeatureNotMeasurable, add_point_feature, innovation_covariances, update_one
 from .measurement import h_and_jacobians_many, ray_from_pixel
 from .motion import predict
+from .search import HALF as HALF_T
 from .search import extract_template, search
 from .state import (CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, check_covariance,
                     quat_to_rotation)
@@ -55,6 +56,13 @@ class MapSettings:
     target_sigma_m: float = 0.001
     init_sigma_v: float = 0.3         # initial velocity uncertainty, m/s
     init_sigma_w: float = 0.5         # initial angular velocity uncertainty, rad/s
+    # Predict templates by the plane-induced homography: "known" warps the target's corners,
+    # whose plane is known (on twin recordings: ATE 0.51 cm against 2.77 unwarped on
+    # workbench-static, 1.30 against 1.70 on sit-down); "all" also warps natural features on
+    # a fronto-parallel guess, better when that guess holds (0.21 cm on workbench-static) and
+    # worse when it does not (12.6 cm on sit-down, where the camera descends past them).
+    warp: str = "known"
+    warp_fallback: bool = True        # search with the first-view template if the warped one fails
 
 
 @dataclass
@@ -66,6 +74,55 @@ class MapFeature:
     known: bool = False            # a target point
     attempts: int = 0
     successes: int = 0
+    # For predicting the template's appearance from the current viewpoint: the first view's
+    # larger patch, pixel, camera orientation (world from camera), and the patch's plane normal.
+    patch: np.ndarray | None = None
+    uv0: np.ndarray | None = None
+    R0: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+
+PATCH_HALF = 20   # the stored first-view patch is 41 x 41, room to warp a 15 x 15 template
+
+
+def _patch(image: np.ndarray, uv) -> np.ndarray | None:
+    u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+    h, w = image.shape[:2]
+    if u - PATCH_HALF < 0 or v - PATCH_HALF < 0 or u + PATCH_HALF >= w or v + PATCH_HALF >= h:
+        return None
+    return image[v - PATCH_HALF:v + PATCH_HALF + 1, u - PATCH_HALF:u + PATCH_HALF + 1].copy()
+
+
+def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
+    """The feature's template as the current camera should see it: the first-view patch warped
+    by the homography its plane (through y, normal ``f.normal``) induces between the two views
+    (computed through the lens model at the patch's corners). Falls back to the stored template
+    when the feature has no patch or the warp degenerates."""
+    if f.patch is None or f.normal is None:
+        return f.template
+    from kinematics.camera import project, unproject
+
+    h = HALF_T
+    c0 = np.round(f.uv0)
+    src = c0 + np.array([[-h, -h], [h, -h], [h, h], [-h, h]], float)
+    d = unproject(cam, src) @ f.R0.T                      # world rays of the first view
+    denom = d @ f.normal
+    if np.any(np.abs(denom) < 1e-6):
+        return f.template
+    lam = (f.normal @ (y - f.r0)) / denom
+    X = f.r0 + lam[:, None] * d
+    R = quat_to_rotation(x_v[3:7])
+    uv = project(cam, (X - x_v[:3]) @ R)
+    centre = project(cam, ((y - x_v[:3]) @ R)[None])[0]
+    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(centre)) and np.all(lam > 0)):
+        return f.template
+    side = np.linalg.norm(uv[1] - uv[0]) / (2 * h)
+    if not 0.5 < side < 2.0:                              # the template is no longer valid
+        return f.template
+    src_p = (src - (c0 - PATCH_HALF)).astype(np.float32)
+    dst_t = (uv - (centre - h)).astype(np.float32)
+    M = cv2.getPerspectiveTransform(src_p, dst_t)
+    return cv2.warpPerspective(f.patch, M, (2 * h + 1, 2 * h + 1), flags=cv2.INTER_LINEAR)
 
 
 @dataclass
@@ -137,13 +194,19 @@ class MonoSLAM:
         if not valid.all() or err.max() > 5.0:
             raise SlamStartError(f"target.toml: the target points do not fit one camera pose (reprojection error "
                                  f"{np.nanmax(err):.1f} px); check that uv are their pixels in the first frame")
+        # The target is planar: its normal (towards the camera) lets its corners' templates be
+        # predicted from any viewpoint.
+        c = target.xyz.mean(axis=0)
+        _, _, Vt = np.linalg.svd(target.xyz - c)
+        normal = Vt[2] if Vt[2] @ (r - c) > 0 else -Vt[2]
         for X, p in zip(target.xyz, target.uv):
             tpl = extract_template(g, p)
             if tpl is None:
                 raise SlamStartError(f"target point at pixel {p.round(1).tolist()} is too close to the image border "
                                      "to take its template; the target must be in view at the start")
             self.state.add_feature(X, np.eye(3) * self.s.target_sigma_m**2, np.zeros((3, self.state.n)), self.cfg)
-            self.features.append(MapFeature(self.next_id, tpl, 0, r.copy(), known=True))
+            self.features.append(MapFeature(self.next_id, tpl, 0, r.copy(), known=True, patch=_patch(g, p),
+                                            uv0=np.asarray(p, float), R0=R_wc.copy(), normal=normal))
             self.next_id += 1
         self.frame = 0
         self.t_prev = t
@@ -210,7 +273,12 @@ class MonoSLAM:
             f = self.features[k]
             st.searched += 1
             f.attempts += 1
-            m = search(g, f.template, uv_k[0], S_k[0], max_score=self.s.match_score)
+            warp = self.s.warp == "all" or (self.s.warp == "known" and f.known)
+            tpl = warped_template(f, self.state.x_v, self.state.feature(int(k)), self.cam) if warp else f.template
+            m = search(g, tpl, uv_k[0], S_k[0], max_score=self.s.match_score)
+            if not m.found and tpl is not f.template and self.s.warp_fallback:
+                # The plane guess can be wrong (a natural feature's true surface): try as first seen.
+                m = search(g, f.template, uv_k[0], S_k[0], max_score=self.s.match_score)
             if not m.found:
                 continue
             try:
@@ -225,7 +293,7 @@ class MonoSLAM:
         P_vv = self.state.P[:CAMERA_DIM, :CAMERA_DIM]
         R = self.cfg.R_pix
         keep = []
-        for fid, p in self.rays:
+        for fid, p, R0, patch in self.rays:
             def project(points):
                 uv, H_x, _, valid = h_and_jacobians_many(x_v, points, self.cam)
                 S = np.full((len(points), 2, 2), np.nan)
@@ -247,12 +315,12 @@ class MonoSLAM:
 
             depth_init.step(p, project, match, self.s.prune)
             if p.is_gaussian(self.s.gauss_ratio) and p.frames >= 2:
-                self._promote(fid, p, st)
+                self._promote(fid, p, R0, patch, st)
             elif p.frames < self.s.max_init_frames and p.failures < 10 and len(p.depths) > 0:
-                keep.append((fid, p))
+                keep.append((fid, p, R0, patch))
         self.rays = keep
 
-    def _promote(self, fid: int, p: depth_init.DepthParticles, st: FrameStats) -> None:
+    def _promote(self, fid: int, p: depth_init.DepthParticles, R0: np.ndarray, patch, st: FrameStats) -> None:
         y = p.origin + p.mean * p.direction
         x_v = self.state.x_v
         uv, _, _, valid = h_and_jacobians_many(x_v, y[None], self.cam)
@@ -263,7 +331,10 @@ class MonoSLAM:
             add_point_feature(self.state, uv[0], depth, p.std**2, self.cfg.R_pix, self.cam, self._step_cfg)
         except SlamNumericalError:
             return
-        self.features.append(MapFeature(fid, p.template, self.frame, self.state.r.copy()))
+        # Assume the patch faces the camera that first saw it (MonoSLAM's fronto-parallel guess).
+        normal = (p.origin - y) / np.linalg.norm(p.origin - y)
+        self.features.append(MapFeature(fid, p.template, self.frame, p.origin.copy(), patch=patch, uv0=p.uv0,
+                                        R0=R0, normal=normal))
         st.added += 1
 
     def _delete(self, st: FrameStats) -> None:
@@ -275,7 +346,7 @@ class MonoSLAM:
                 st.deleted += 1
 
     def _start_rays(self, g: np.ndarray, st: FrameStats) -> None:
-        occupied = [p.uv0 for _, p in self.rays]
+        occupied = [p.uv0 for _, p, _, _ in self.rays]
         if self.state.n_features:
             uv, _, _, valid = h_and_jacobians_many(self.state.x_v, self.state.features, self.cam)
             occupied += list(uv[valid])
@@ -284,7 +355,7 @@ class MonoSLAM:
             origin, d = ray_from_pixel(self.state.x_v, uv, self.cam)[:2]
             p = depth_init.DepthParticles.create(origin, d, tpl, uv, self.s.particles, self.s.depth_near_m,
                                                  self.s.depth_far_m)
-            self.rays.append((self.next_id, p))
+            self.rays.append((self.next_id, p, quat_to_rotation(self.state.q), _patch(g, uv)))
             self.next_id += 1
 
     # -------------------------------------------------------------- outputs
