@@ -13,7 +13,12 @@ import numpy as np
 from kinematics.camera import default_camera
 from runtime.slam.filter import innovation_covariances, update_one
 from runtime.slam.motion import predict
-from runtime.slam.state import DEFAULT_CONFIG, State
+from dataclasses import replace
+
+from runtime.slam.state import DEFAULT_CONFIG, State, check_covariance
+
+# As MonoSLAM.process does: positive-definiteness checked once per frame, not per update.
+STEP_CFG = replace(DEFAULT_CONFIG, check_psd=False)
 
 
 def make_state(n_features: int, rng) -> tuple[State, np.ndarray]:
@@ -26,12 +31,13 @@ def make_state(n_features: int, rng) -> tuple[State, np.ndarray]:
 
 
 def frame(st: State, cam, visible: np.ndarray, rng) -> None:
-    predict(st, 1 / 30, DEFAULT_CONFIG)
+    predict(st, 1 / 30, STEP_CFG)
     uv, S, valid = innovation_covariances(st, visible, cam, DEFAULT_CONFIG.R_pix)
-    for k in visible[np.argsort(-np.linalg.det(S))]:
+    for k in visible[valid][np.argsort(-np.linalg.det(S[valid]))]:
         uvk, _, ok = innovation_covariances(st, [k], cam, DEFAULT_CONFIG.R_pix)
         if ok[0]:
-            update_one(st, int(k), uvk[0] + rng.normal(0, 1, 2), cam, DEFAULT_CONFIG.R_pix, DEFAULT_CONFIG)
+            update_one(st, int(k), uvk[0] + rng.normal(0, 1, 2), cam, DEFAULT_CONFIG.R_pix, STEP_CFG)
+    st.P = check_covariance(st.P, "frame", DEFAULT_CONFIG)
 
 
 def main():
