@@ -85,6 +85,28 @@ def _texture(rng: np.random.Generator, size: int = 256, style: str = "clutter") 
     return png.tobytes()
 
 
+def _bench_top_texture(rng: np.random.Generator, size_m: tuple[float, float], px_per_m: float = 320.0) -> bytes:
+    """A PNG covering the whole bench top once (no tiling: a repeated pattern would invite
+    mismatches a tile apart): wood with scattered sheets, notes and marks."""
+    W, H = int(px_per_m * size_m[0]), int(px_per_m * size_m[1])
+    img = np.zeros((H, W, 3), np.uint8)
+    img[:] = (84, 122, 158)                       # wood, BGR
+    for y in range(0, H, 6):                      # grain
+        shade = int(rng.integers(-10, 10))
+        img[y:y + 3] = np.clip(img[y:y + 3].astype(int) + shade, 0, 255)
+    for _ in range(int(45 * size_m[0] * size_m[1])):
+        x, y = int(rng.integers(0, W - 40)), int(rng.integers(0, H - 40))
+        w, h = (int(v) for v in rng.integers(20, 70, 2))
+        colour = tuple(int(c) for c in rng.integers(150, 255, 3)) if rng.uniform() < 0.7 else \
+            tuple(int(c) for c in rng.integers(0, 90, 3))
+        cv2.rectangle(img, (x, y), (x + w, y + h), colour, -1)
+        if rng.uniform() < 0.5:                   # print on the sheet
+            cv2.putText(img, "".join(rng.choice(list("ABEFHKLMNTXYZ47"), 2)), (x + 3, y + h - 5),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1)
+    ok, png = cv2.imencode(".png", img)
+    return png.tobytes()
+
+
 def _fmt(v) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(v))
 
@@ -95,7 +117,7 @@ def _quat(R: np.ndarray) -> str:
 
 
 def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wearer, mount: Mount,
-                bench: Workbench = Workbench(), seed: int = 0, n_objects: int = 9,
+                bench: Workbench = Workbench(), seed: int = 0, n_objects: int | None = None,
                 stool: tuple[float, float, float] | None = None) -> tuple[str, dict]:
     """(MJCF string, assets dict of PNG bytes) of the whole scene.
 
@@ -105,6 +127,9 @@ def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wea
     its mesh where it belongs. The head hangs below the mounted segment's body.
     """
     rng = np.random.default_rng(seed)
+    if n_objects is None:
+        # About 8 objects per square metre of bench, so a long bench is as cluttered as a short one.
+        n_objects = max(6, int(round(8.0 * bench.size[0] * bench.size[1])))
     root = ET.Element("mujoco", model="wvr_twin")
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
     ET.SubElement(root, "option", timestep=repr(TIMESTEP), gravity="0 0 -9.81", integrator="implicitfast")
@@ -128,6 +153,11 @@ def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wea
     ET.SubElement(asset, "material", name="white", rgba="0.95 0.95 0.95 1", specular="0")
     ET.SubElement(asset, "material", name="black", rgba="0.02 0.02 0.02 1", specular="0")
     ET.SubElement(asset, "material", name="wood", rgba="0.62 0.48 0.33 1", specular="0.05")
+    # The bench top: wood strewn with sheets, notes and tools' outlines, so even its empty parts
+    # offer corners.
+    assets["benchtop.png"] = _bench_top_texture(rng, bench.size)
+    ET.SubElement(asset, "texture", name="benchtop", type="2d", file="benchtop.png")
+    ET.SubElement(asset, "material", name="benchtop", texture="benchtop", specular="0.05", texrepeat="1 1")
     ET.SubElement(asset, "material", name="skin", rgba="0.78 0.62 0.52 1", specular="0.1")
     for s, name in enumerate(wearer.segments):
         v, f = wearer.segment_mesh(s)
@@ -154,7 +184,7 @@ def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wea
     top_t = 0.03
     b = ET.SubElement(world, "body", name="bench", pos=_fmt([bx, by, 0]))
     ET.SubElement(b, "geom", name="bench_top", type="box", size=_fmt([sx / 2, sy / 2, top_t / 2]),
-                  pos=_fmt([0, 0, bench.height - top_t / 2]), material="wood", contype="0", conaffinity="0")
+                  pos=_fmt([0, 0, bench.height - top_t / 2]), material="benchtop", contype="0", conaffinity="0")
     for i, (lx, ly) in enumerate([(-1, -1), (1, -1), (1, 1), (-1, 1)]):
         ET.SubElement(b, "geom", name=f"bench_leg{i}", type="box", size="0.025 0.025 " + repr((bench.height - top_t) / 2),
                       pos=_fmt([lx * (sx / 2 - 0.05), ly * (sy / 2 - 0.05), (bench.height - top_t) / 2]),
