@@ -133,8 +133,10 @@ class _Log:
         self.f.close()
 
 
-def _evaluate_many(X: np.ndarray, ctx: EvaluationContext, client, on_done) -> None:
-    """Evaluate rows of X, calling on_done(i, F, G) as each finishes (any order)."""
+def _evaluate_many(X: np.ndarray, ctx, client, on_done) -> None:
+    """Evaluate rows of X, calling on_done(i, F, G) as each finishes (any order).
+
+    ``ctx`` is the EvaluationContext itself, or, with a client, its scattered future."""
     if client is None:
         for i, x in enumerate(X):
             F, G = evaluate_design(x, ctx)
@@ -142,9 +144,7 @@ def _evaluate_many(X: np.ndarray, ctx: EvaluationContext, client, on_done) -> No
         return
     from dask.distributed import as_completed
 
-    ctx_f = client.scatter(ctx, broadcast=True) if not hasattr(client, "_wvr_ctx") else client._wvr_ctx
-    client._wvr_ctx = ctx_f
-    futures = {client.submit(evaluate_design, x, ctx_f, pure=False): i for i, x in enumerate(X)}
+    futures = {client.submit(evaluate_design, x, ctx, pure=False): i for i, x in enumerate(X)}
     for fut in as_completed(futures):
         F, G = fut.result()
         on_done(futures[fut], F, G)
@@ -206,6 +206,8 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
         spec_path.write_text(dump_spec(spec))
         _write_atomic(state_path, cloudpickle.dumps(state))
 
+    # Ship the context (workload arrays) to every worker once per run, not once per batch.
+    ctx_remote = ctx if client is None else client.scatter(ctx, broadcast=True)
     rows = _read_log(log_path)
     logged = {(int(r["batch"]), int(r["index"])): r for r in rows}
     log = _Log(log_path, next_id=len(rows))
@@ -233,7 +235,7 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
                 log.add(batch, i, algorithm, X[i], f, g)
                 bar.update(1)
 
-            _evaluate_many(X[todo], ctx, client, done)
+            _evaluate_many(X[todo], ctx_remote, client, done)
             evaluated += len(todo)
             state.algorithm.tell(X, F, G)
             state.batches_done += 1

@@ -14,17 +14,6 @@ import numpy as np
 from .geometry import HeadGeometry
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices, ``skew(a) @ b == cross(a, b)``."""
-    v = np.asarray(v, float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([
-        np.stack([z, -v[..., 2], v[..., 1]], -1),
-        np.stack([v[..., 2], z, -v[..., 0]], -1),
-        np.stack([-v[..., 1], v[..., 0], z], -1),
-    ], -2)
-
-
 def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rotation matrices about a fixed unit ``axis`` (3,) by ``angle`` (...,) radians -> (..., 3, 3).
 

@@ -80,10 +80,6 @@ class GazeResult:
         return self.solutions[0].q
 
 
-class UnreachableGaze(ValueError):
-    """Raised by callers that want an exception instead of inspecting :class:`GazeResult`."""
-
-
 def _unit(v) -> np.ndarray:
     v = np.asarray(v, float)
     n = np.linalg.norm(v)

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import CameraIntrinsics, default_camera
 from .dynamics import GRAVITY, link_inertias
-from .geometry import JOINT_NAMES, HeadGeometry
+from .geometry import HeadGeometry
 
 #: Optical frame -> MuJoCo camera frame (x same, y and z flipped).
 R_OPT_MJCAM = np.diag([1.0, -1.0, -1.0])
@@ -51,11 +51,12 @@ def effective_joint_inertia(head: HeadGeometry) -> np.ndarray:
     from .chain import forward_kinematics
 
     pose = forward_kinematics(head, np.zeros(3))
+    inertias = link_inertias(head)
     out = np.zeros(3)
     for j in range(3):
         a, o = pose.axes_mount[j], pose.origins_mount[j]
         total = head.servo_of(j).armature_kgm2
-        for k, li in enumerate(link_inertias(head)):
+        for k, li in enumerate(inertias):
             if k < j:
                 continue
             R = pose.T_mount_link[k, :3, :3]
@@ -157,7 +158,3 @@ def build_mjcf(head: HeadGeometry, camera: CameraIntrinsics | None = None, *, ti
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n"
 
-
-def body_names() -> tuple[str, ...]:
-    """MJCF body names of the links, in chain order."""
-    return JOINT_NAMES

@@ -173,7 +173,6 @@ def _dispersion(p: np.ndarray, R: Rotation) -> tuple[np.ndarray, np.ndarray]:
     T, F = p.shape[:2]
     dist = np.linalg.norm(p - p.mean(axis=0), axis=2).mean(axis=0)
     Rm = R.as_matrix().reshape(T, F, 3, 3)
-    ang = np.zeros(F)
     # Mean rotation per face: project the mean matrix onto SO(3) (chordal L2 mean).
     M = Rm.mean(axis=0)
     U, _, Vt = np.linalg.svd(M)

@@ -19,8 +19,9 @@ from .system import MapSettings, MonoSLAM, SlamStartError
 
 
 def _annotate(image: np.ndarray, slam: MonoSLAM) -> np.ndarray:
-    """Features (green matched this frame... all mapped shown with 3-sigma ellipses) and the
-    particle sets of initialising features (yellow dots), as in the paper's Fig. 7 and 8."""
+    """Every mapped feature at its predicted position with its 3-sigma search ellipse (target
+    points red, others green) and the particles of initialising features (yellow dots), as in
+    the paper's Fig. 7 and 8."""
     img = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     st = slam.state
     if st.n_features:
