@@ -60,7 +60,8 @@ class DepthParticles:
         return self.std < gauss_ratio * self.mean
 
 
-def reweight(p: DepthParticles, z: np.ndarray, uv: np.ndarray, S: np.ndarray, prune: float = 0.01) -> None:
+def reweight(p: DepthParticles, z: np.ndarray, uv: np.ndarray, S: np.ndarray, prune: float = 0.01,
+             outlier: float = 0.0, area_px: float = 1.0) -> None:
     """Bayes update of the particle weights by a match z (2,) given each particle's predicted
     measurement uv (N, 2) and innovation covariance S (N, 2, 2); then prune particles whose
     weight is below ``prune`` times the largest. Particles behind the camera (NaN) get zero."""
@@ -70,6 +71,10 @@ def reweight(p: DepthParticles, z: np.ndarray, uv: np.ndarray, S: np.ndarray, pr
     Si = np.linalg.inv(S[ok])
     m2 = np.einsum("ni,nij,nj->n", d[ok], Si, d[ok])
     like[ok] = np.exp(-0.5 * m2) / (2 * np.pi * np.sqrt(np.linalg.det(S[ok])))
+    # A wrong match (repeated texture, an occluding contour) is explained by a uniform density
+    # over the searched area with probability ``outlier``, so that one bad frame cannot prune
+    # the true depth for good.
+    like[ok] = (1.0 - outlier) * like[ok] + outlier / max(area_px, 1.0)
     w = p.weights * like
     if w.sum() <= 0 or not np.isfinite(w.sum()):
         p.failures += 1
@@ -80,14 +85,17 @@ def reweight(p: DepthParticles, z: np.ndarray, uv: np.ndarray, S: np.ndarray, pr
 
 
 def step(p: DepthParticles, project: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-         match: Callable[[np.ndarray, np.ndarray], np.ndarray | None], prune: float = 0.01) -> None:
+         match: Callable[[np.ndarray, np.ndarray], np.ndarray | None], prune: float = 0.01,
+         outlier: float = 0.0) -> None:
     """One frame: ``project(points (N, 3)) -> (uv (N, 2), S (N, 2, 2))`` predicts the particles;
-    ``match(uv, S) -> z (2,) or None`` searches the template over their ellipses."""
+    ``match(uv, S) -> (z (2,), searched area px^2) or None`` searches the template over their
+    ellipses."""
     p.frames += 1
     uv, S = project(p.points())
-    z = match(uv, S)
-    if z is None:
+    found = match(uv, S)
+    if found is None:
         p.failures += 1
         return
-    reweight(p, np.asarray(z, float), uv, S, prune)
+    z, area = found
+    reweight(p, np.asarray(z, float), uv, S, prune, outlier, area)
     p.history.append((p.mean, p.std))

@@ -24,7 +24,7 @@ def test_particles_converge_on_the_true_depth_and_pass_the_gaussian_test():
 
         def match(uv, S):
             X = true - cam
-            return c + f * X[:2] / X[2] + rng.normal(0, 1.0, 2)
+            return c + f * X[:2] / X[2] + rng.normal(0, 1.0, 2), 400.0
 
         step(p, project, match)
         if p.is_gaussian():
@@ -39,3 +39,25 @@ def test_a_failed_search_is_counted_and_changes_nothing():
     w = p.weights.copy()
     step(p, lambda P: (np.zeros((len(P), 2)), np.tile(np.eye(2), (len(P), 1, 1))), lambda uv, S: None)
     assert p.failures == 1 and np.array_equal(w, p.weights)
+
+
+def test_one_wrong_match_does_not_prune_the_true_depth_when_outliers_are_modelled():
+    f, c = 500.0, np.array([320.0, 240.0])
+    d = np.array([0.0, 0.0, 1.0])
+    cam = np.array([0.05, 0.0, 0.0])                   # 5 cm baseline: depths spread over ~45 px
+
+    def project(P):
+        X = P - cam
+        return c + f * X[:, :2] / X[:, 2:3], np.tile(np.eye(2), (len(P), 1, 1))
+
+    true_depth = 2.0
+    z_true = c + f * (true_depth * d - cam)[:2] / true_depth
+    z_wrong = z_true + np.array([-20.0, 0.0])          # another corner on the epipolar band
+    for outlier, survives in ((0.0, False), (0.1, True)):
+        p = DepthParticles.create(np.zeros(3), d, np.zeros((15, 15)), c)
+        step(p, project, lambda uv, S: (z_wrong, 60.0 * 8.0), prune=0.001, outlier=outlier)
+        assert (np.abs(p.depths - true_depth).min() < 0.05) == survives, (outlier, p.depths)
+        if survives:
+            for _ in range(3):                         # the true match then wins it back
+                step(p, project, lambda uv, S: (z_true, 60.0 * 8.0), prune=0.001, outlier=outlier)
+            assert abs(p.mean - true_depth) < 0.1, p.mean
