@@ -51,6 +51,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    writer = None
     if video:
         (out / "video").mkdir(exist_ok=True)
     slam = MonoSLAM(seq.camera, cfg, settings)
@@ -75,7 +76,16 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         times.append(f.t)
         poses.append(slam.T_world_cam())
         if video and f.image is not None:
-            cv2.imwrite(str(out / "video" / f"{i:06d}.png"), _annotate(f.image, slam))
+            frame = _annotate(f.image, slam)
+            cv2.imwrite(str(out / "video" / f"{i:06d}.png"), frame)
+            if writer is None:
+                # One playable file besides the frames, at the sequence's own rate.
+                fps = (n - 1) / max(seq.timestamps[n - 1] - seq.timestamps[0], 1e-6) if n > 1 else 30.0
+                writer = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                         (frame.shape[1], frame.shape[0]))
+            writer.write(frame)
+    if writer is not None:
+        writer.release()
     write_trajectory(out / "trajectory.tum", np.array(times), np.array(poses),
                      header="MonoSLAM camera-to-world poses (optical frame), TUM order")
     with open(out / "map.csv", "w", newline="") as fh:

@@ -27,6 +27,7 @@ from . import depth_init
 from .features import grey, new_features
 from .filter import FeatureNotMeasurable, add_point_feature, innovation_covariances, update_one
 from .measurement import h_and_jacobians_many, ray_from_pixel
+from .relocalise import relocalise
 from .motion import predict
 from .search import HALF as HALF_T
 from .search import extract_template, search
@@ -57,11 +58,18 @@ class MapSettings:
     max_view_angle_deg: float = 45.0
     max_range_ratio: float = 1.4
     margin_px: float = 12.0
+    outlier_px: float = 3.0           # a posteriori residual making a match an outlier
     # Zero-mean normalised SSD accepting a match (2 (1 - ZNCC)): 0.2, i.e. ZNCC >= 0.9; at 0.4
     # patches on occluding contours kept matching as their background slid (sit-down 2.2 cm
     # against 1.7).
     match_score: float = 0.2
     lost_after: int = 10              # frames with fewer than 3 matches before "lost"
+    lost_noise_gain: float = 2.0      # while lost, impulse standard deviations grow by this
+    reloc_candidates: int = 30        # target points and most reliable features tried
+    reloc_min_inliers: int = 4         # PnP inliers; the active search must then confirm it
+    reloc_min_confirmed: int = 4       # with this many matches at the new pose
+    reloc_sigma_m: float = 0.02       # camera uncertainty after re-acquiring, m
+    reloc_sigma_q: float = 0.01       # and per quaternion component
     target_sigma_m: float = 0.001
     init_sigma_v: float = 0.3         # initial velocity uncertainty, m/s
     init_sigma_w: float = 0.5         # initial angular velocity uncertainty, rad/s
@@ -143,9 +151,11 @@ class FrameStats:
     matched: int = 0
     added: int = 0
     deleted: int = 0
+    outliers: int = 0
     initialising: int = 0
     seconds: float = 0.0
     lost: bool = False
+    relocalised: bool = False
     skipped: str = ""
 
 
@@ -167,6 +177,8 @@ class MonoSLAM:
         # positive-semi-definiteness check (a Cholesky of all of P) runs once per frame, where
         # it costs one factorisation instead of one per measured feature.
         self._step_cfg = replace(cfg, check_psd=False)
+        self._lost_cfg = replace(self._step_cfg, sigma_a=cfg.sigma_a * settings.lost_noise_gain,
+                                 sigma_alpha=cfg.sigma_alpha * settings.lost_noise_gain)
         self.s = settings
         self.state: State | None = None
         self.features: list[MapFeature] = []
@@ -229,14 +241,33 @@ class MonoSLAM:
         g = grey(image)
         dt = t - self.t_prev
         self.t_prev = t
-        predict(self.state, dt, self._step_cfg)
+        lost = self.low_matches >= self.s.lost_after
+        # Lost: the motion model's impulses grow (wider search ellipses), the map is frozen,
+        # and every frame first tries to re-acquire the pose from whole-image matches.
+        predict(self.state, dt, self._lost_cfg if lost else self._step_cfg)
+        if lost:
+            # Failed searches while lost say nothing about the features: their records are kept.
+            counts = [(f.attempts, f.successes) for f in self.features]
+            saved_camera = (self.state.x.copy(), self.state.P.copy())
+            st.relocalised = self._relocalise(g)
         self._measure(g, st)
-        self._refine_rays(g, st)
-        self._delete(st)
-        if st.matched < self.s.add_below and len(self.rays) < self.s.max_initialising:
-            self._start_rays(g, st)
+        if lost and st.relocalised and st.matched < self.s.reloc_min_confirmed:
+            # The active search at the new pose did not confirm it: stay lost, restore.
+            self.state.x, self.state.P = saved_camera
+            self.low_matches = self.s.lost_after
+            st.relocalised = False
+        if lost and not st.relocalised:
+            for f, (a, b) in zip(self.features, counts):
+                f.attempts, f.successes = a, b
+        if not lost or st.relocalised:
+            self._refine_rays(g, st)
+            self._delete(st)
+            if st.matched < self.s.add_below and len(self.rays) < self.s.max_initialising:
+                self._start_rays(g, st)
         self.state.P = check_covariance(self.state.P, f"frame {self.frame}", self.cfg)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
+        if st.relocalised and st.matched < 3:
+            self.low_matches = self.s.lost_after      # a pose the map does not confirm: keep trying
         st.lost = self.low_matches >= self.s.lost_after
         st.initialising = len(self.rays)
         st.seconds = time.perf_counter() - t0
@@ -274,6 +305,8 @@ class MonoSLAM:
         ks, uv, S = self._visible()
         st.predicted = len(ks)
         order = ks[np.argsort(-np.linalg.det(S), kind="stable")] if len(ks) else ks
+        prior = (self.state.x.copy(), self.state.P.copy())   # no re-validation: it was valid
+        used = []
         for k in order:
             # Recompute this feature's ellipse: the updates before it have shrunk it.
             uv_k, S_k, valid = innovation_covariances(self.state, [k], self.cam, self.cfg.R_pix)
@@ -294,8 +327,65 @@ class MonoSLAM:
                 update_one(self.state, int(k), m.uv, self.cam, self.cfg.R_pix, self._step_cfg)
             except (FeatureNotMeasurable, SlamNumericalError):
                 continue
-            f.successes += 1
-            st.matched += 1
+            used.append((int(k), m.uv))
+        self._reject_outliers(prior, used, st)
+
+    def _relocalise(self, g: np.ndarray) -> bool:
+        """Try to re-acquire the camera pose from the target and the most reliable mapped
+        features (relocalise.py); on success restart the camera block there."""
+        if self.state.n_features < self.s.reloc_min_inliers:
+            return False
+        rank = sorted(range(len(self.features)), key=lambda k: (not self.features[k].known,
+                                                               -self.features[k].successes))
+        ks = np.array(rank[:self.s.reloc_candidates])
+        found = relocalise(g, [self.features[k].template for k in ks], self.state.features[ks], self.cam,
+                           self.s.match_score, min_inliers=self.s.reloc_min_inliers)
+        if found is None:
+            return False
+        from scipy.spatial.transform import Rotation
+
+        x, y, z, w = Rotation.from_matrix(found.R_world_cam).as_quat()
+        n = self.state.n
+        self.state.x[:CAMERA_DIM] = np.concatenate([found.r, [w, x, y, z], np.zeros(6)])
+        P = self.state.P.copy()
+        P[:CAMERA_DIM, :] = 0.0
+        P[:, :CAMERA_DIM] = 0.0
+        P[:CAMERA_DIM, :CAMERA_DIM] = np.diag(np.r_[np.full(3, self.s.reloc_sigma_m**2),
+                                                    np.full(4, self.s.reloc_sigma_q**2),
+                                                    np.full(3, self.s.init_sigma_v**2),
+                                                    np.full(3, self.s.init_sigma_w**2)])
+        assert P.shape == (n, n)
+        self.state.P = P
+        self.low_matches = 0
+        return True
+
+    def _reject_outliers(self, prior: tuple[np.ndarray, np.ndarray], used: list, st: FrameStats) -> None:
+        """Matches the updated camera cannot explain (a posteriori residual above
+        ``outlier_px``) are outliers: an occluding contour whose background slid, a repeated
+        pattern. If there are any, the frame's updates are redone from the prior without them
+        (the matches are kept, not searched again) and they count as failed attempts."""
+        if not used:
+            return
+        ks = np.array([k for k, _ in used])
+        z = np.array([uv for _, uv in used])
+        uv, _, _, valid = h_and_jacobians_many(self.state.x_v, self.state.features[ks], self.cam)
+        bad = ~valid | (np.linalg.norm(z - uv, axis=1) > self.s.outlier_px)
+        if bad.any() and (~bad).sum() >= 3:
+            self.state.x, self.state.P = prior
+            for i, (k, zk) in enumerate(used):
+                if bad[i]:
+                    continue
+                try:
+                    update_one(self.state, k, zk, self.cam, self.cfg.R_pix, self._step_cfg)
+                except (FeatureNotMeasurable, SlamNumericalError):
+                    bad[i] = True
+        else:
+            bad[:] = False
+        for (k, _), b in zip(used, bad):
+            if not b:
+                self.features[k].successes += 1
+                st.matched += 1
+        st.outliers = int(bad.sum())
 
     def _refine_rays(self, g: np.ndarray, st: FrameStats) -> None:
         x_v = self.state.x_v

@@ -26,8 +26,11 @@ def sequence(tmp_path_factory):
 
 
 def test_tracks_a_twin_recording(sequence, tmp_path):
-    totals = run_slam(sequence, tmp_path, progress=False)
+    totals = run_slam(sequence, tmp_path, progress=False, video=True)
     assert not totals["lost"] and totals["frames"] == 60
+    import cv2
+    cap = cv2.VideoCapture(str(tmp_path / "video.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 60 and len(list((tmp_path / "video").glob("*.png"))) == 60
     e = trajectory_errors(read_trajectory(tmp_path / "trajectory.tum"), open_sequence(sequence).groundtruth)
     # A regression bound; the 1 cm target is measured by benchmarks/bench_slam.py.
     assert e.ate_rmse_m < 0.03, e
@@ -61,3 +64,23 @@ def test_refuses_without_a_usable_target(sequence, tmp_path):
     save_target(target, seq / "target.toml")
     with pytest.raises(SlamStartError, match="target"):
         run_slam(seq, tmp_path / "o2", progress=False)
+
+
+def test_lost_track_is_reported_and_reacquired_when_the_view_returns(sequence, tmp_path):
+    import cv2
+
+    seq = tmp_path / "seq"
+    shutil.copytree(sequence, seq)
+    paths = open_sequence(seq).paths
+    for p in paths[12:30]:                     # the lens covered for 18 frames (0.6 s)
+        cv2.imwrite(str(p), np.zeros_like(cv2.imread(str(p))))
+    totals = run_slam(seq, tmp_path / "out", progress=False)
+    frames = json.loads((tmp_path / "out" / "stats.json").read_text())["frames"]
+    lost = [f["lost"] for f in frames]
+    assert totals["lost"] and any(lost[20:30]), lost          # said, in stats.json
+    assert not any(lost[40:]), lost                           # and over once the view is back
+    assert any(f["relocalised"] for f in frames[29:40])
+    est = read_trajectory(tmp_path / "out" / "trajectory.tum")
+    gt = open_sequence(seq).groundtruth
+    err = np.linalg.norm(est.p_world_cam[45:] - gt.p_world_cam[45:], axis=1)
+    assert err.max() < 0.03, err

@@ -1,0 +1,113 @@
+"""Re-acquiring the track after it is lost: the mapped features' templates are searched over
+the whole image, and a camera pose is fitted to the 2D-3D matches by PnP inside RANSAC
+(OpenCV), as Williams, Klein and Reid's relocaliser does for MonoSLAM, with the target's
+corners and the most reliable natural features as candidates.
+
+The filter is then restarted at that pose: the camera block's mean is replaced, its velocity
+set to zero, and its covariance reset to ``P_cam`` with no correlation to the map (the map's own
+covariance is kept).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from kinematics.camera import CameraIntrinsics, undistort
+
+from .search import HALF
+
+FLAT_VARIANCE = 4.0      # grey levels^2: windows flatter than a 2-level standard deviation
+
+
+@dataclass(frozen=True)
+class Relocalisation:
+    """R_world_cam : (3, 3), r : (3,) optical centre, world, m; inliers : feature indices used."""
+
+    R_world_cam: np.ndarray
+    r: np.ndarray
+    inliers: np.ndarray
+
+
+def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: float = 0.2, per_template: int = 4
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The best whole-image matches of each template in a grey float32 image.
+
+    A small corner template is rarely unique in a cluttered scene, so up to ``per_template``
+    separated peaks scoring at most ``max_score`` (zero-mean normalised SSD, as in search.py)
+    are kept, and PnP-RANSAC decides. Returns uv (m, 2) px of the template centres and
+    which (m,) template each belongs to.
+    """
+    img = image.astype(np.float32, copy=False)
+    # OpenCV's normalised score is rounding noise where the window is flat (a plain sheet, a
+    # black frame), and can reach 1 there: such windows cannot hold a feature and are excluded.
+    size = (2 * HALF + 1, 2 * HALF + 1)
+    mean = cv2.boxFilter(img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
+    sq = cv2.boxFilter(img * img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
+    var = (sq - mean * mean)[HALF:img.shape[0] - HALF, HALF:img.shape[1] - HALF]
+    flat = var < FLAT_VARIANCE
+    uv, owner = [], []
+    for i, t in enumerate(templates):
+        ncc = cv2.matchTemplate(img, t.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+        ncc[flat | ~np.isfinite(ncc)] = -1.0
+        for _ in range(per_template):
+            _, best, _, (u, v) = cv2.minMaxLoc(ncc)
+            if 2.0 * (1.0 - best) > max_score:
+                break
+            uv.append((u + HALF, v + HALF))
+            owner.append(i)
+            ncc[max(v - 2 * HALF, 0):v + 2 * HALF + 1, max(u - 2 * HALF, 0):u + 2 * HALF + 1] = -1.0
+    return np.array(uv, float).reshape(-1, 2), np.array(owner, np.intp)
+
+
+def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, cam: CameraIntrinsics,
+               max_score: float = 0.2, reprojection_px: float = 2.0, min_inliers: int = 4
+               ) -> Relocalisation | None:
+    """A camera pose from whole-image matches of mapped features, or None.
+
+    templates : the features' 15 x 15 templates; Y : (m, 3) their world positions, m.
+    A pose needs at least ``min_inliers`` matches within ``reprojection_px`` of their
+    reprojection.
+    """
+    uv, owner = global_matches(image, templates, max_score)
+    xy = undistort(cam, uv) if len(uv) else uv
+    good = np.isfinite(xy).all(axis=1)
+    uv, owner, xy = uv[good], owner[good], xy[good]
+    if len(np.unique(owner)) < max(min_inliers, 4):
+        return None
+    found, rvec, tvec, inl = cv2.solvePnPRansac(
+        Y[owner].astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+        reprojectionError=reprojection_px / max(cam.fx, cam.fy), iterationsCount=5000, confidence=0.999,
+        flags=cv2.SOLVEPNP_AP3P)   # minimal 4-point sets: fewest draws
+    if not found or inl is None:
+        return None
+    inl = inl.ravel()
+    # One image point per feature: a feature with two inlier peaks keeps the better fitting one.
+    keep = {}
+    R_cw, _ = cv2.Rodrigues(rvec)
+    Pc = Y[owner[inl]] @ R_cw.T + tvec.ravel()
+    res = np.linalg.norm(Pc[:, :2] / Pc[:, 2:3] - xy[inl], axis=1)
+    for j, e in zip(inl, res):
+        if owner[j] not in keep or e < keep[owner[j]][1]:
+            keep[owner[j]] = (j, e)
+    inl = np.array([j for j, _ in keep.values()])
+    if len(inl) < min_inliers:
+        return None
+    inl = inl.ravel()
+    X, x = Y[owner[inl]].astype(np.float64), xy[inl].astype(np.float64)
+    # Re-solve on the inliers: coplanar points (the target alone) have a two-fold ambiguity that
+    # the minimal solver can pick wrongly; IPPE takes the better of the two, SQPnP the rest.
+    c = X - X.mean(axis=0)
+    planar = np.linalg.svd(c, compute_uv=False)[-1] < 1e-3 * max(np.linalg.norm(c, axis=1).max(), 1e-9)
+    ok, rvec, tvec = cv2.solvePnP(X, x, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP)
+    if not ok or not np.isfinite(tvec).all():
+        return None
+    R_cam_world, _ = cv2.Rodrigues(rvec)
+    Pc = X @ R_cam_world.T + tvec.ravel()
+    err = np.linalg.norm(Pc[:, :2] / Pc[:, 2:3] - x, axis=1) * max(cam.fx, cam.fy)
+    if np.any(Pc[:, 2] <= 0) or err.max() > 2 * reprojection_px:
+        return None
+    R_world_cam = R_cam_world.T
+    return Relocalisation(R_world_cam, -R_world_cam @ tvec.ravel(), owner[inl])
