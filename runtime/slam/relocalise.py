@@ -77,10 +77,13 @@ def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, ca
     uv, owner, xy = uv[good], owner[good], xy[good]
     if len(np.unique(owner)) < max(min_inliers, 4):
         return None
-    found, rvec, tvec, inl = cv2.solvePnPRansac(
-        Y[owner].astype(np.float64), xy.astype(np.float64), np.eye(3), None,
-        reprojectionError=reprojection_px / max(cam.fx, cam.fy), iterationsCount=5000, confidence=0.999,
-        flags=cv2.SOLVEPNP_AP3P)   # minimal 4-point sets: fewest draws
+    try:
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
+            Y[owner].astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+            reprojectionError=reprojection_px / max(cam.fx, cam.fy), iterationsCount=5000, confidence=0.999,
+            flags=cv2.SOLVEPNP_AP3P)   # minimal 4-point sets: fewest draws
+    except cv2.error:
+        return None
     if not found or inl is None:
         return None
     inl = inl.ravel()
@@ -101,7 +104,11 @@ def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, ca
     # the minimal solver can pick wrongly; IPPE takes the better of the two, SQPnP the rest.
     c = X - X.mean(axis=0)
     planar = np.linalg.svd(c, compute_uv=False)[-1] < 1e-3 * max(np.linalg.norm(c, axis=1).max(), 1e-9)
-    ok, rvec, tvec = cv2.solvePnP(X, x, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec = cv2.solvePnP(X, x, np.eye(3), None,
+                                      flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP)
+    except cv2.error:        # degenerate inliers (nearly coincident points): no pose from them
+        return None
     if not ok or not np.isfinite(tvec).all():
         return None
     R_cam_world, _ = cv2.Rodrigues(rvec)
