@@ -67,7 +67,7 @@ class MapSettings:
     lost_noise_gain: float = 2.0      # while lost, impulse standard deviations grow by this
     reloc_candidates: int = 30        # target points and most reliable features tried
     reloc_min_inliers: int = 4         # PnP inliers; the active search must then confirm it
-    reloc_min_confirmed: int = 4       # with this many matches at the new pose
+    reloc_min_confirmed: int = 4       # with this many matches, and half those searched, at the new pose
     reloc_sigma_m: float = 0.02       # camera uncertainty after re-acquiring, m
     reloc_sigma_q: float = 0.01       # and per quaternion component
     target_sigma_m: float = 0.001
@@ -251,7 +251,7 @@ class MonoSLAM:
             saved_camera = (self.state.x.copy(), self.state.P.copy())
             st.relocalised = self._relocalise(g)
         self._measure(g, st)
-        if lost and st.relocalised and st.matched < self.s.reloc_min_confirmed:
+        if lost and st.relocalised and st.matched < max(self.s.reloc_min_confirmed, st.searched / 2):
             # The active search at the new pose did not confirm it: stay lost, restore.
             self.state.x, self.state.P = saved_camera
             self.low_matches = self.s.lost_after
