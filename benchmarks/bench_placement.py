@@ -7,7 +7,6 @@ depend on how many threads Embree uses. Target: at least 4 million rays per seco
 import tempfile
 import time
 
-import numpy as np
 
 from placement.body import make_body
 from placement.mapping import placement_map

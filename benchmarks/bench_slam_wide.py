@@ -11,8 +11,6 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
 
 from kinematics.camera import CameraIntrinsics, save_camera  # noqa: E402
 from runtime.sequence import open_sequence, read_trajectory  # noqa: E402

@@ -19,8 +19,7 @@ import os
 import pickle
 
 import cloudpickle
-import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np

@@ -39,6 +39,9 @@ Like OpenCV, brown and fisheye :func:`distort` return a value even past the fold
 
 Every function that has a derivative sits next to its ``*_jacobian`` twin, which returns the same
 values plus the analytic Jacobian (the MonoSLAM ``f_and_df`` pattern).
+
+Each lens model is one numba-compiled kernel for a single point (see "Lens models" below), looped
+over points by the array functions and called directly by the SLAM measurement model.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Mapping
 
+import numba
 import numpy as np
 import tomli_w
 
@@ -297,10 +301,45 @@ def default_camera() -> CameraIntrinsics:
 
 
 # ---------------------------------------------------------------------------------------------
-# Lens models. The brown and fisheye models distort in normalised coordinates and then apply K;
-# radial-sqrt distorts in pixels about (cx, cy). Each private forward model returns values and,
-# if asked, the (N, 2, 2) Jacobian with respect to the normalised input.
+# Lens models. Each model is written once, as a numba-compiled kernel for ONE point (scalars in,
+# scalars out, with its analytic 2x2 Jacobian). The array functions of this module loop those
+# kernels over points in compiled code, and runtime.slam.measurement calls
+# :func:`project_point_kernel` from its own compiled measurement model, so the EKF's per-feature
+# path and the public vectorised API share one implementation of every formula (a single point
+# costs microseconds instead of the ~100 us of numpy's per-call overhead). The brown and fisheye
+# models distort in normalised coordinates and then apply K; radial-sqrt distorts in pixels
+# about (cx, cy).
+#
+# The kernels take the camera as (model code, parameter vector), see :func:`lens_kernel_args`;
+# ``error_model="numpy"`` makes a division by zero give inf/NaN instead of raising, as numpy does.
+# The kernels call only kernels of this file, so numba's on-disk cache (invalidated when this
+# file changes) is never stale.
 # ---------------------------------------------------------------------------------------------
+
+_jit = numba.njit(cache=True, error_model="numpy")
+
+#: Model codes the kernels switch on (a string cannot be passed cheaply into compiled code).
+BROWN, FISHEYE, RADIAL_SQRT = 0, 1, 2
+_MODEL_CODES = {"brown": BROWN, "fisheye": FISHEYE, "radial-sqrt": RADIAL_SQRT}
+#: Order of the kernels' parameter vector (pixels, and the dimensionless / px^-2 terms).
+_PARAM_ORDER = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2", "kd1")
+_FX, _FY, _CX, _CY, _K1, _K2, _K3, _K4, _P1, _P2, _KD1 = range(len(_PARAM_ORDER))
+
+
+def lens_kernel_args(cam: CameraIntrinsics) -> tuple[int, np.ndarray]:
+    """``(model code, parameters (11,))`` of ``cam`` for the compiled lens kernels
+    (:func:`project_point_kernel` and friends), parameters in the order of ``_PARAM_ORDER``.
+
+    Computed once per camera and kept on it (the camera is immutable); do not modify the array.
+    """
+    args = cam.__dict__.get("_lens_kernel_args")
+    if args is None:
+        args = (_MODEL_CODES[cam.model], np.array([getattr(cam, name) for name in _PARAM_ORDER], dtype=np.float64))
+        # A frozen dataclass refuses setattr; the cache is not a field (equality, hashing,
+        # to_dict and replace() never see it), so writing it into __dict__ is safe.
+        cam.__dict__["_lens_kernel_args"] = args
+    return args
+
 
 def _nan_for_bad_points(func):
     """Silence numpy's floating-point warnings in an array function: invalid points (NaN, inf,
@@ -313,10 +352,12 @@ def _nan_for_bad_points(func):
 
 
 def _points(a, dim: int, name: str) -> np.ndarray:
+    """``a`` as a C-contiguous (N, dim) float64 array (the one layout the kernels are compiled
+    for), or ValueError."""
     a = np.asarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != dim:
         raise ValueError(f"{name} must have shape (N, {dim}), got {a.shape}")
-    return a
+    return np.ascontiguousarray(a)
 
 
 def _focal(cam: CameraIntrinsics) -> np.ndarray:
@@ -327,25 +368,27 @@ def _centre(cam: CameraIntrinsics) -> np.ndarray:
     return np.array([cam.cx, cam.cy])
 
 
-def _brown_normalised(cam, xy, jac: bool):
-    """Distorted normalised points (N, 2) and, if jac, d(distorted)/d(xy) (N, 2, 2)."""
-    k1, k2, k3, p1, p2 = cam.k1, cam.k2, cam.k3, cam.p1, cam.p2
-    x, y = xy[:, 0], xy[:, 1]
+@_jit
+def _brown_radial(p, r2):
+    """The brown model's radial factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (r2 = r^2, scalar or
+    array)."""
+    return 1.0 + r2 * (p[_K1] + r2 * (p[_K2] + r2 * p[_K3]))
+
+
+@_jit
+def _brown_point(p, x, y):
+    """Brown-distorted normalised point ``(xd, yd)`` of the normalised point ``(x, y)`` and
+    ``d(xd, yd)/d(x, y)`` as ``(j00, j01, j10, j11)``."""
+    k1, k2, k3, p1, p2 = p[_K1], p[_K2], p[_K3], p[_P1], p[_P2]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    radial = _brown_radial(p, r2)
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    out = np.stack([xd, yd], axis=1)
-    if not jac:
-        return out, None
     dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
     cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # the model's Jacobian is symmetric
-    J = np.empty((len(xy), 2, 2))
-    J[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    J[:, 0, 1] = cross
-    J[:, 1, 0] = cross
-    J[:, 1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    return out, J
+    j00 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    j11 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd, j00, cross, cross, j11
 
 
 # Below this normalised radius the fisheye scale theta_d / r is 1 to double precision (its
@@ -353,44 +396,126 @@ def _brown_normalised(cam, xy, jac: bool):
 _FISHEYE_SMALL_R = 1e-8
 
 
-def _fisheye_poly(cam, theta):
-    """theta_d = g(theta) and g'(theta) of the equidistant model."""
+@_jit
+def _fisheye_poly(p, theta):
+    """theta_d = g(theta) and g'(theta) of the equidistant model (theta scalar or array, rad)."""
+    k1, k2, k3, k4 = p[_K1], p[_K2], p[_K3], p[_K4]
     t2 = theta * theta
-    g = theta * (1.0 + t2 * (cam.k1 + t2 * (cam.k2 + t2 * (cam.k3 + t2 * cam.k4))))
-    dg = 1.0 + t2 * (3.0 * cam.k1 + t2 * (5.0 * cam.k2 + t2 * (7.0 * cam.k3 + t2 * 9.0 * cam.k4)))
+    g = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    dg = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
     return g, dg
 
 
-def _fisheye_normalised(cam, xy, jac: bool):
-    """Distorted normalised points (N, 2) = xy * s(r), s = theta_d / r; and, if jac, the Jacobian."""
-    r = np.hypot(xy[:, 0], xy[:, 1])
-    theta = np.arctan(r)
-    g, dg = _fisheye_poly(cam, theta)
-    small = r < _FISHEYE_SMALL_R
-    r_safe = np.where(small, 1.0, r)
-    s = np.where(small, 1.0, g / r_safe)
-    out = xy * s[:, None]
-    if not jac:
-        return out, None
-    # d(xy s)/d(xy) = s I + (s'(r) / r) xy xy^T, with s'(r) = (g'(theta) / (1 + r^2) - s) / r.
-    # The difference loses digits as r -> 0, but it is multiplied by |xy|^2 ~ r^2, so the
-    # absolute error of the Jacobian stays at rounding level; at r = 0 use the limit.
-    ds_over_r = np.where(small, 2.0 * (cam.k1 - 1.0 / 3.0), (dg / (1.0 + r * r) - s) / (r_safe * r_safe))
-    J = s[:, None, None] * np.eye(2) + ds_over_r[:, None, None] * xy[:, :, None] * xy[:, None, :]
+@_jit
+def _fisheye_point(p, x, y):
+    """Fisheye-distorted normalised point ``(x, y) s(r)``, ``s = theta_d / r``, and its Jacobian
+    ``(j00, j01, j10, j11)``."""
+    r = math.hypot(x, y)
+    g, dg = _fisheye_poly(p, math.atan(r))
+    if r < _FISHEYE_SMALL_R:
+        s = 1.0
+        ds_over_r = 2.0 * (p[_K1] - 1.0 / 3.0)   # the limit at r = 0
+    else:
+        # d(xy s)/d(xy) = s I + (s'(r) / r) xy xy^T, with s'(r) = (g'(theta) / (1 + r^2) - s) / r.
+        # The difference loses digits as r -> 0, but it is multiplied by |xy|^2 ~ r^2, so the
+        # absolute error of the Jacobian stays at rounding level.
+        s = g / r
+        ds_over_r = (dg / (1.0 + r * r) - s) / (r * r)
+    cross = ds_over_r * x * y
+    return x * s, y * s, s + ds_over_r * x * x, cross, cross, s + ds_over_r * y * y
+
+
+@_jit
+def _radial_sqrt_point(p, x, y):
+    """Pixels ``(u, v)`` of the normalised point ``(x, y)`` through MonoSLAM's radial-sqrt model
+    and ``d(uv)/d(xy)`` ``(j00, j01, j10, j11)``, pixels; NaN where ``1 + 2 kd1 r^2 <= 0``."""
+    fx, fy, kd1 = p[_FX], p[_FY], p[_KD1]
+    ex, ey = x * fx, y * fy  # undistorted offset from (cx, cy), pixels
+    q = 1.0 + 2.0 * kd1 * (ex * ex + ey * ey)
+    s = 1.0 / math.sqrt(q) if q > 0 else np.nan
+    # d(e s)/de = s I - 2 kd1 s^3 e e^T, then de/dxy = diag(fx, fy) scales the columns.
+    c = 2.0 * kd1 * s * s * s
+    return (p[_CX] + ex * s, p[_CY] + ey * s,
+            (s - c * ex * ex) * fx, -c * ex * ey * fy, -c * ey * ex * fx, (s - c * ey * ey) * fy)
+
+
+@_jit
+def _normalised_point(model, p, x, y):
+    """Distorted normalised point and its Jacobian for the models that distort in normalised
+    coordinates (brown, fisheye)."""
+    if model == BROWN:
+        return _brown_point(p, x, y)
+    return _fisheye_point(p, x, y)
+
+
+@_jit
+def _distort_point(model, p, x, y):
+    """Pixels ``(u, v)`` of the undistorted normalised point ``(x, y)`` through the lens model,
+    and ``d(uv)/d(xy)`` ``(j00, j01, j10, j11)``, pixels."""
+    if model == RADIAL_SQRT:
+        return _radial_sqrt_point(p, x, y)
+    xd, yd, j00, j01, j10, j11 = _normalised_point(model, p, x, y)
+    fx, fy = p[_FX], p[_FY]
+    return (xd * fx + p[_CX], yd * fy + p[_CY], j00 * fx, j01 * fx, j10 * fy, j11 * fy)
+
+
+@_jit
+def project_point_kernel(model, p, X, Y, Z):
+    """Pixels ``(u, v)`` of the optical-frame point ``(X, Y, Z)`` (m) and ``d(uv)/d(X, Y, Z)``
+    as six numbers ``(j00, j01, j02, j10, j11, j12)``, px/m; all NaN when ``Z <= 0`` (or NaN).
+
+    Compiled (numba): call it from other compiled code with ``lens_kernel_args(cam)``; from
+    Python use :func:`project_jacobian`, which loops it over points."""
+    if not Z > 0:
+        return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
+    x, y = X / Z, Y / Z
+    u, v, a, b, c, d = _distort_point(model, p, x, y)
+    # d(X/Z, Y/Z)/d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]], composed with the lens's 2x2.
+    iz = 1.0 / Z
+    return (u, v, a * iz, b * iz, -(a * x + b * y) * iz, c * iz, d * iz, -(c * x + d * y) * iz)
+
+
+@_jit
+def _distort_many(model, p, xy):
+    """(N, 2) pixels and (N, 2, 2) d(uv)/d(xy) of the (N, 2) normalised points."""
+    n = xy.shape[0]
+    uv = np.empty((n, 2))
+    J = np.empty((n, 2, 2))
+    for i in range(n):
+        uv[i, 0], uv[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = \
+            _distort_point(model, p, xy[i, 0], xy[i, 1])
+    return uv, J
+
+
+@_jit
+def _normalised_many(model, p, xy):
+    """(N, 2) distorted normalised points and (N, 2, 2) Jacobians (brown, fisheye only)."""
+    n = xy.shape[0]
+    out = np.empty((n, 2))
+    J = np.empty((n, 2, 2))
+    for i in range(n):
+        out[i, 0], out[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = \
+            _normalised_point(model, p, xy[i, 0], xy[i, 1])
     return out, J
 
 
-def _radial_sqrt_forward(cam, xy, jac: bool):
-    """Pixels (N, 2) and, if jac, d(uv)/d(xy) (N, 2, 2). NaN where 1 + 2 kd1 r^2 <= 0."""
-    e = xy * _focal(cam)  # undistorted offset from (cx, cy), pixels
-    q = 1.0 + 2.0 * cam.kd1 * np.sum(e * e, axis=1)
-    s = 1.0 / np.sqrt(np.where(q > 0, q, np.nan))
-    uv = _centre(cam) + e * s[:, None]
-    if not jac:
-        return uv, None
-    # d(e s)/de = s I - 2 kd1 s^3 e e^T, then de/dxy = diag(fx, fy) scales the columns.
-    J = s[:, None, None] * np.eye(2) - (2.0 * cam.kd1 * s**3)[:, None, None] * e[:, :, None] * e[:, None, :]
-    return uv, J * _focal(cam)[None, None, :]
+@_jit
+def _project_many(model, p, P):
+    """(N, 2) pixels and (N, 2, 3) d(uv)/d(P) of the (N, 3) optical-frame points."""
+    n = P.shape[0]
+    uv = np.empty((n, 2))
+    J = np.empty((n, 2, 3))
+    for i in range(n):
+        (uv[i, 0], uv[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 0, 2],
+         J[i, 1, 0], J[i, 1, 1], J[i, 1, 2]) = project_point_kernel(model, p, P[i, 0], P[i, 1], P[i, 2])
+    return uv, J
+
+
+def _forward(cam, xy, jac: bool):
+    """Pixels (N, 2) of normalised points (N, 2, C-contiguous) and, if jac, d(uv)/d(xy)."""
+    model, p = lens_kernel_args(cam)
+    uv, J = _distort_many(model, p, xy)
+    return uv, (J if jac else None)
 
 
 def _radial_sqrt_inverse(cam, uv, jac: bool):
@@ -404,17 +529,6 @@ def _radial_sqrt_inverse(cam, uv, jac: bool):
     # d(d t)/dd = t I + 2 kd1 t^3 d d^T, then xy = (.)/f scales the rows.
     J = t[:, None, None] * np.eye(2) + (2.0 * cam.kd1 * t**3)[:, None, None] * d[:, :, None] * d[:, None, :]
     return xy, J / _focal(cam)[None, :, None]
-
-
-_NORMALISED_MODELS = {"brown": _brown_normalised, "fisheye": _fisheye_normalised}
-
-
-def _forward(cam, xy, jac: bool):
-    if cam.model == "radial-sqrt":
-        return _radial_sqrt_forward(cam, xy, jac)
-    xd, J = _NORMALISED_MODELS[cam.model](cam, xy, jac)
-    f = _focal(cam)
-    return xd * f + _centre(cam), (None if J is None else J * f[None, :, None])
 
 
 @_nan_for_bad_points
@@ -442,6 +556,7 @@ def _newton_brown(cam, xd):
 
     xd : (N, 2) distorted normalised points. Returns (N, 2), NaN where it did not converge.
     """
+    p = lens_kernel_args(cam)[1]
     x = xd.copy()
     active = np.isfinite(xd).all(axis=1)
     converged = np.zeros(len(xd), bool)
@@ -449,7 +564,7 @@ def _newton_brown(cam, xd):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        d, J = _brown_normalised(cam, x[idx], jac=True)
+        d, J = _normalised_many(BROWN, p, x[idx])
         res = d - xd[idx]
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
         step = np.stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
@@ -462,13 +577,14 @@ def _newton_brown(cam, xd):
     # Past the fold the radial factor can turn negative, mapping points through the centre to
     # the opposite side (with det J > 0 again, so _inverse's check alone would not catch it).
     r2 = np.sum(x * x, axis=1)
-    converged &= 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3)) > 0
+    converged &= _brown_radial(p, r2) > 0
     return np.where(converged[:, None], x, np.nan)
 
 
 def _newton_fisheye(cam, xd):
     """Invert the equidistant model: solve g(theta) = |xd| by 1-D Newton (as cv2.fisheye does),
     then r = tan(theta). Returns (N, 2), NaN where it did not converge or theta >= pi/2."""
+    p = lens_kernel_args(cam)[1]
     theta_d = np.hypot(xd[:, 0], xd[:, 1])
     theta = theta_d.copy()
     active = np.isfinite(theta_d)
@@ -477,7 +593,7 @@ def _newton_fisheye(cam, xd):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        g, dg = _fisheye_poly(cam, theta[idx])
+        g, dg = _fisheye_poly(p, theta[idx])
         step = (g - theta_d[idx]) / dg
         theta[idx] -= step
         # A step d(theta) moves the normalised radius r = tan(theta) by (1 + r^2) d(theta).
@@ -537,14 +653,6 @@ def undistort_jacobian(cam: CameraIntrinsics, uv) -> tuple[np.ndarray, np.ndarra
     return _inverse(cam, _points(uv, 2, "uv"), jac=True)
 
 
-def _normalise_points(P):
-    """(N, 3) optical-frame points -> (N, 2) X/Z, Y/Z, with NaN for Z <= 0 (or non-finite Z)."""
-    Z = P[:, 2]
-    front = Z > 0
-    Zs = np.where(front, Z, np.nan)
-    return P[:, :2] / Zs[:, None], Zs
-
-
 @_nan_for_bad_points
 def project(cam: CameraIntrinsics, P_cam) -> np.ndarray:
     """Points in the optical frame to pixels (pinhole then lens model).
@@ -553,8 +661,7 @@ def project(cam: CameraIntrinsics, P_cam) -> np.ndarray:
     Returns uv : (N, 2) float, pixels. Points with Z <= 0 (on or behind the camera plane) give
     NaN, unlike cv2.projectPoints, which projects them through the centre anyway.
     """
-    xy, _ = _normalise_points(_points(P_cam, 3, "P_cam"))
-    return _forward(cam, xy, jac=False)[0]
+    return project_jacobian(cam, P_cam)[0]
 
 
 @_nan_for_bad_points
@@ -564,14 +671,8 @@ def project_jacobian(cam: CameraIntrinsics, P_cam) -> tuple[np.ndarray, np.ndarr
     Returns uv : (N, 2) pixels, and J : (N, 2, 3), J[i] = d(uv_i)/d(P_i), pixels per metre
     (NaN for Z <= 0).
     """
-    P = _points(P_cam, 3, "P_cam")
-    xy, Z = _normalise_points(P)
-    uv, Jd = _forward(cam, xy, jac=True)
-    # d(X/Z, Y/Z)/d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
-    Jn = np.zeros((len(P), 2, 3))
-    Jn[:, 0, 0] = Jn[:, 1, 1] = 1.0 / Z
-    Jn[:, :, 2] = -xy / Z[:, None]
-    return uv, Jd @ Jn
+    model, p = lens_kernel_args(cam)
+    return _project_many(model, p, _points(P_cam, 3, "P_cam"))
 
 
 @_nan_for_bad_points

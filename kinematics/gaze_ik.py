@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .chain import axis_angle_matrix, forward_kinematics
+from .chain import forward_kinematics
 from .geometry import JOINT_NAMES, HeadGeometry
 
 #: Default cone around the zenith/nadir in which "image vertical" has no meaning.

@@ -8,7 +8,7 @@ limits: the command filter in :mod:`kinematics.servo` never lets a command excee
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ from .state import (
     State,
     check_covariance,
     check_mean,
+    compiled_kernel,
     quat_left_matrix,
     quat_right_matrix,
     rotvec_to_quat_jacobian,
@@ -111,14 +112,32 @@ def process_noise(x_v, dt: float, cfg: SlamConfig = DEFAULT_CONFIG) -> np.ndarra
     return G @ noise_covariance(dt, cfg) @ G.T
 
 
+@compiled_kernel()
+def normalise_quaternion_kernel(q0, q1, q2, q3):
+    """``q / |q|`` (4,) and its Jacobian ``(|q|^2 I - q q^T) / |q|^3`` (4, 4) from the four
+    components, and whether ``|q|^2`` was finite and > 0 (if not, the arrays are NaN). Compiled
+    (numba) so that the EKF's sequential update can call it from its own kernel; from Python use
+    :func:`normalise_quaternion_jacobian`."""
+    q = np.array([q0, q1, q2, q3])
+    nrm2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    J = np.empty((4, 4))
+    if not (np.isfinite(nrm2) and nrm2 > 0):
+        J[:] = np.nan
+        return np.full(4, np.nan), J, False
+    nrm = math.sqrt(nrm2)
+    for i in range(4):
+        for j in range(4):
+            J[i, j] = ((nrm2 if i == j else 0.0) - q[i] * q[j]) / (nrm2 * nrm)
+    return q / nrm, J, True
+
+
 def normalise_quaternion_jacobian(q) -> tuple[np.ndarray, np.ndarray]:
     """``q / |q|`` (4,) and its Jacobian ``(|q|^2 I - q q^T) / |q|^3`` (4, 4)."""
     q = np.asarray(q, dtype=float).reshape(4)
-    nrm2 = float(q @ q)
-    if not (math.isfinite(nrm2) and nrm2 > 0):
+    q_unit, J, ok = normalise_quaternion_kernel(q[0], q[1], q[2], q[3])
+    if not ok:
         raise ValueError(f"cannot normalise the quaternion {q.tolist()}")
-    nrm = math.sqrt(nrm2)
-    return q / nrm, (nrm2 * np.eye(4) - np.outer(q, q)) / (nrm2 * nrm)
+    return q_unit, J
 
 
 def normalise_quaternion(state: State) -> None:
@@ -131,10 +150,17 @@ def normalise_quaternion(state: State) -> None:
 
 
 def apply_quaternion_jacobian(P: np.ndarray, J: np.ndarray) -> None:
-    """``P <- T P T^T`` in place, where ``T`` is the identity except ``J`` (4, 4) on the quaternion
-    block: rows and columns 3:7 only."""
-    P[Q_SLICE, :] = J @ P[Q_SLICE, :]
-    P[:, Q_SLICE] = P[:, Q_SLICE] @ J.T
+    """``P <- T P T^T`` in place for a symmetric ``P`` (n, n), where ``T`` is the identity except
+    ``J`` (4, 4) on the quaternion block: rows and columns 3:7 only, O(n).
+
+    The q columns are written as the transpose of the q rows and the 4x4 block is symmetrised,
+    so a symmetric ``P`` stays exactly symmetric (and :func:`check_covariance` can skip its
+    n x n symmetrisation)."""
+    rows = J @ P[Q_SLICE, :]                  # (4, n): the q rows of T P
+    qq = rows[:, Q_SLICE] @ J.T               # J P_qq J^T
+    rows[:, Q_SLICE] = 0.5 * (qq + qq.T)
+    P[Q_SLICE, :] = rows
+    P[:, Q_SLICE] = rows.T
 
 
 def predict(state: State, dt: float, cfg: SlamConfig = DEFAULT_CONFIG) -> None:
@@ -151,9 +177,12 @@ def predict(state: State, dt: float, cfg: SlamConfig = DEFAULT_CONFIG) -> None:
     x = state.x.copy()
     x[CAMERA_SLICE] = x_v_new
     P = state.P.copy()
-    P[CAMERA_SLICE, :] = F @ P[CAMERA_SLICE, :]
-    P[:, CAMERA_SLICE] = P[:, CAMERA_SLICE] @ F.T
-    P[CAMERA_SLICE, CAMERA_SLICE] += Q
+    rows = F @ P[CAMERA_SLICE, :]             # (13, n): the camera rows of F P
+    vv = rows[:, CAMERA_SLICE] @ F.T + Q      # F P_vv F^T + Q
+    rows[:, CAMERA_SLICE] = 0.5 * (vv + vv.T)
+    P[CAMERA_SLICE, :] = rows
+    P[:, CAMERA_SLICE] = rows.T               # P_yv F^T = (F P_vy)^T: written as the transpose,
+                                              # so a symmetric P stays exactly symmetric
 
     q_unit, J = normalise_quaternion_jacobian(x[Q_SLICE])
     x[Q_SLICE] = q_unit

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -25,7 +25,7 @@ from kinematics.camera import CameraIntrinsics, in_image, undistort
 from ..sequence import Target
 from . import depth_init
 from .features import grey, new_features
-from .filter import FeatureNotMeasurable, add_point_feature, innovation_covariances, update_one
+from .filter import FeatureNotMeasurable, SequentialUpdate, add_point_feature, innovation_covariances
 from .measurement import h_and_jacobians_many, ray_from_pixel
 from .relocalise import relocalise
 from .motion import predict
@@ -305,30 +305,32 @@ class MonoSLAM:
         ks, uv, S = self._visible()
         st.predicted = len(ks)
         order = ks[np.argsort(-np.linalg.det(S), kind="stable")] if len(ks) else ks
-        prior = (self.state.x.copy(), self.state.P.copy())   # no re-validation: it was valid
+        # The frame's updates accumulate in su and reach the state at commit; until then the
+        # state is the prior (kept for the outlier check).
+        su = SequentialUpdate(self.state, self.cam, self.cfg.R_pix, self._step_cfg)
         used = []
-        for k in order:
-            # Recompute this feature's ellipse: the updates before it have shrunk it.
-            uv_k, S_k, valid = innovation_covariances(self.state, [k], self.cam, self.cfg.R_pix)
-            if not valid[0]:
+        for k in map(int, order):
+            # This feature's ellipse at the current estimate: the updates before it have shrunk it.
+            uv_k, S_k, valid = su.innovation(k)
+            if not valid:
                 continue
             f = self.features[k]
             st.searched += 1
             f.attempts += 1
             warp = self.s.warp == "all" or (self.s.warp == "known" and f.known)
-            tpl = warped_template(f, self.state.x_v, self.state.feature(int(k)), self.cam) if warp else f.template
-            m = search(g, tpl, uv_k[0], S_k[0], max_score=self.s.match_score)
+            tpl = warped_template(f, su.x_v, su.feature(k), self.cam) if warp else f.template
+            m = search(g, tpl, uv_k, S_k, max_score=self.s.match_score)
             if not m.found and tpl is not f.template and self.s.warp_fallback:
                 # The plane guess can be wrong (a natural feature's true surface): try as first seen.
-                m = search(g, f.template, uv_k[0], S_k[0], max_score=self.s.match_score)
+                m = search(g, f.template, uv_k, S_k, max_score=self.s.match_score)
             if not m.found:
                 continue
             try:
-                update_one(self.state, int(k), m.uv, self.cam, self.cfg.R_pix, self._step_cfg)
+                su.update(k, m.uv)
             except (FeatureNotMeasurable, SlamNumericalError):
                 continue
-            used.append((int(k), m.uv))
-        self._reject_outliers(prior, used, st)
+            used.append((k, m.uv))
+        self._reject_outliers(su, used, st)
 
     def _relocalise(self, g: np.ndarray) -> bool:
         """Try to re-acquire the camera pose from the target and the most reliable mapped
@@ -359,28 +361,30 @@ class MonoSLAM:
         self.low_matches = 0
         return True
 
-    def _reject_outliers(self, prior: tuple[np.ndarray, np.ndarray], used: list, st: FrameStats) -> None:
+    def _reject_outliers(self, su: SequentialUpdate, used: list, st: FrameStats) -> None:
         """Matches the updated camera cannot explain (a posteriori residual above
         ``outlier_px``) are outliers: an occluding contour whose background slid, a repeated
         pattern. If there are any, the frame's updates are redone from the prior without them
-        (the matches are kept, not searched again) and they count as failed attempts."""
-        if not used:
-            return
-        ks = np.array([k for k, _ in used])
-        z = np.array([uv for _, uv in used])
-        uv, _, _, valid = h_and_jacobians_many(self.state.x_v, self.state.features[ks], self.cam)
-        bad = ~valid | (np.linalg.norm(z - uv, axis=1) > self.s.outlier_px)
-        if bad.any() and (~bad).sum() >= 3:
-            self.state.x, self.state.P = prior
-            for i, (k, zk) in enumerate(used):
-                if bad[i]:
-                    continue
-                try:
-                    update_one(self.state, k, zk, self.cam, self.cfg.R_pix, self._step_cfg)
-                except (FeatureNotMeasurable, SlamNumericalError):
-                    bad[i] = True
-        else:
-            bad[:] = False
+        (the matches are kept, not searched again) and they count as failed attempts. Then the
+        frame's update is committed to the state."""
+        bad = np.zeros(len(used), bool)
+        if used:
+            ks = np.array([k for k, _ in used])
+            z = np.array([uv for _, uv in used])
+            uv, _, _, valid = h_and_jacobians_many(su.x_v, su.features[ks], self.cam)
+            bad = ~valid | (np.linalg.norm(z - uv, axis=1) > self.s.outlier_px)
+            if bad.any() and (~bad).sum() >= 3:
+                su = SequentialUpdate(self.state, self.cam, self.cfg.R_pix, self._step_cfg)
+                for i, (k, zk) in enumerate(used):
+                    if bad[i]:
+                        continue
+                    try:
+                        su.update(k, zk)
+                    except (FeatureNotMeasurable, SlamNumericalError):
+                        bad[i] = True
+            else:
+                bad[:] = False
+        su.commit()
         for (k, _), b in zip(used, bad):
             if not b:
                 self.features[k].successes += 1

@@ -9,7 +9,7 @@ same focal length in the centre; every output pixel is then looked up through ``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, forward_kinematics, gaze_at_point
+from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, gaze_at_point
 from kinematics.camera import CameraIntrinsics
 from kinematics.mjcf import R_OPT_MJCAM
 
