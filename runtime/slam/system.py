@@ -97,6 +97,7 @@ class MapFeature:
     uv0: np.ndarray | None = None
     R0: np.ndarray | None = None
     normal: np.ndarray | None = None
+    rays0: np.ndarray | None = None  # (4, 3) world rays of the first view's patch corners (cache)
 
 
 PATCH_HALF = 20   # the stored first-view patch is 41 x 41, room to warp a 15 x 15 template
@@ -122,16 +123,19 @@ def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIn
     h = HALF_T
     c0 = np.round(f.uv0)
     src = c0 + np.array([[-h, -h], [h, -h], [h, h], [-h, h]], float)
-    d = unproject(cam, src) @ f.R0.T                      # world rays of the first view
+    if f.rays0 is None:
+        # The first view's world rays through the patch corners never change: unproject once.
+        f.rays0 = unproject(cam, src) @ f.R0.T
+    d = f.rays0
     denom = d @ f.normal
     if np.any(np.abs(denom) < 1e-6):
         return f.template
     lam = (f.normal @ (y - f.r0)) / denom
-    X = f.r0 + lam[:, None] * d
+    X = np.vstack([f.r0 + lam[:, None] * d, y])           # the corners on the plane, and y
     R = quat_to_rotation(x_v[3:7])
-    uv = project(cam, (X - x_v[:3]) @ R)
-    centre = project(cam, ((y - x_v[:3]) @ R)[None])[0]
-    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(centre)) and np.all(lam > 0)):
+    uvc = project(cam, (X - x_v[:3]) @ R)
+    uv, centre = uvc[:4], uvc[4]
+    if not (np.all(np.isfinite(uvc)) and np.all(lam > 0)):
         return f.template
     side = np.linalg.norm(uv[1] - uv[0]) / (2 * h)
     if not 0.5 < side < 2.0:                              # the template is no longer valid
