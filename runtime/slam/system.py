@@ -293,16 +293,16 @@ class MonoSLAM:
             return ks, np.empty((0, 2)), np.empty((0, 2, 2))
         uv, S, valid = innovation_covariances(self.state, ks, self.cam, self.cfg.R_pix)
         ok = valid & in_image(self.cam, np.nan_to_num(uv, nan=-1e9), margin=self.s.margin_px)
+        # The template is valid while the view is close to its first one: viewing angle and
+        # range change against the first view's camera centre r0.
         Y = self.state.features
-        r = self.state.r
-        for k in np.flatnonzero(ok):
-            f = self.features[k]
-            a, b = Y[k] - r, Y[k] - f.r0
-            na, nb = np.linalg.norm(a), np.linalg.norm(b)
-            ratio = na / max(nb, 1e-9)
-            angle = math.degrees(math.acos(np.clip(a @ b / max(na * nb, 1e-12), -1, 1)))
-            if angle > self.s.max_view_angle_deg or not (1 / self.s.max_range_ratio <= ratio <= self.s.max_range_ratio):
-                ok[k] = False
+        a = Y - self.state.r
+        b = Y - np.array([f.r0 for f in self.features])
+        na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12)
+        ratio = na / np.maximum(nb, 1e-9)
+        ok &= (cos >= math.cos(math.radians(self.s.max_view_angle_deg))) \
+            & (ratio >= 1 / self.s.max_range_ratio) & (ratio <= self.s.max_range_ratio)
         return ks[ok], uv[ok], S[ok]
 
     def _measure(self, g: np.ndarray, st: FrameStats) -> None:
