@@ -66,6 +66,7 @@ class MapSettings:
     lost_after: int = 10              # frames with fewer than 3 matches before "lost"
     lost_noise_gain: float = 2.0      # while lost, impulse standard deviations grow by this
     reloc_candidates: int = 30        # target points and most reliable features tried
+    reloc_every: int = 3              # frames between whole-image attempts while lost
     reloc_min_inliers: int = 4         # PnP inliers; the active search must then confirm it
     reloc_min_confirmed: int = 4       # with this many matches, and half those searched, at the new pose
     reloc_sigma_m: float = 0.02       # camera uncertainty after re-acquiring, m
@@ -247,19 +248,21 @@ class MonoSLAM:
         self.t_prev = t
         lost = self.low_matches >= self.s.lost_after
         # Lost: the motion model's impulses grow (wider search ellipses), the map is frozen,
-        # and every frame first tries to re-acquire the pose from whole-image matches.
+        # and the pose is sought again from whole-image matches (relocalise.py).
         predict(self.state, dt, self._lost_cfg if lost else self._step_cfg)
         if lost:
             # Failed searches while lost say nothing about the features: their records are kept.
             counts = [(f.attempts, f.successes) for f in self.features]
             saved_camera = (self.state.x.copy(), self.state.P.copy())
-            st.relocalised = self._relocalise(g)
+            # A whole-image search costs tens of ms: one frame in reloc_every tries it.
+            if (self.low_matches - self.s.lost_after) % self.s.reloc_every == 0:
+                st.relocalised = self._relocalise(g)
         self._measure(g, st)
         if lost and st.relocalised and st.matched < max(self.s.reloc_min_confirmed, st.searched / 2):
             # The active search at the new pose did not confirm it: stay lost, restore.
             self.state.x, self.state.P = saved_camera
-            self.low_matches = self.s.lost_after
             st.relocalised = False
+            st.matched = 0                            # those matches were undone with the pose
         if lost and not st.relocalised:
             for f, (a, b) in zip(self.features, counts):
                 f.attempts, f.successes = a, b
@@ -270,8 +273,6 @@ class MonoSLAM:
                 self._start_rays(g, st)
         self.state.P = check_covariance(self.state.P, f"frame {self.frame}", self.cfg)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
-        if st.relocalised and st.matched < 3:
-            self.low_matches = self.s.lost_after      # a pose the map does not confirm: keep trying
         st.lost = self.low_matches >= self.s.lost_after
         st.initialising = len(self.rays)
         st.seconds = time.perf_counter() - t0
