@@ -50,6 +50,10 @@ class MapSettings:
     prune: float = 0.001              # drop particles below 0.1% of the strongest
     max_init_frames: int = 30         # give up on a ray that has not converged by then
     min_init_frames: int = 5
+    # The particles' spread understates the depth's uncertainty: each frame's likelihood is
+    # treated as independent, yet all share the camera estimate's error. Promoting with twice
+    # the spread took sit-down from 1.64 to 1.26 cm and kept walk tracked from 4.0 s to 10.6 s.
+    promote_std_gain: float = 2.0
     outlier: float = 0.1              # chance that a ray's match is wrong (uniform over the band)
     add_below: int = 6                # add features when fewer than 6 (5 or fewer) were measured
     max_initialising: int = 6         # rays in flight: 3 left walk and sit-down short of features
@@ -436,7 +440,8 @@ class MonoSLAM:
             return
         depth = float(np.linalg.norm(y - self.state.r))
         try:
-            add_point_feature(self.state, uv[0], depth, p.std**2, self.cfg.R_pix, self.cam, self._step_cfg)
+            add_point_feature(self.state, uv[0], depth, (self.s.promote_std_gain * p.std)**2, self.cfg.R_pix, self.cam,
+                              self._step_cfg)
         except SlamNumericalError:
             return
         # Assume the patch faces the camera that first saw it (MonoSLAM's fronto-parallel guess).
