@@ -13,7 +13,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from runtime.sequence import open_sequence, read_trajectory  # noqa: E402
-from runtime.slam.eval import trajectory_errors  # noqa: E402
+from runtime.slam.eval import map_errors, trajectory_errors  # noqa: E402
 from runtime.slam.run import run_slam  # noqa: E402
 from runtime.twin.recorder import record  # noqa: E402
 from wvr.cli import make_twin  # noqa: E402
@@ -24,7 +24,7 @@ def main():
         for scenario, seconds in (("workbench-static", 12.0), ("walk", 12.0), ("sit-down", 6.0)):
             twin = make_twin()
             try:
-                seq = record(twin, scenario, Path(d) / scenario, seconds=seconds, seed=0, progress=False)
+                seq = record(twin, scenario, Path(d) / scenario, seconds=seconds, seed=0, progress=False, depth=True)
             finally:
                 twin.close()
             out = Path(d) / f"{scenario}-slam"
@@ -37,6 +37,9 @@ def main():
                   f"{e.rpe_rot_rmse_deg:4.2f} deg; {tot['mean_matched']:.1f} matched/frame; "
                   f"{1000 / tot['mean_ms_per_frame']:.0f} frames/s mean, {1 / np.median(ms):.0f} median (whole frame, decoding "
                   f"excluded); lost {tot['lost']}", flush=True)
+            m = map_errors(open_sequence(seq), out / "map.csv")
+            print(f"{'':17s} map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
+                  f"median {100 * m.median_m:.2f} cm", flush=True)
 
 
 if __name__ == "__main__":

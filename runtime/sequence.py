@@ -10,6 +10,9 @@ A sequence is a folder in the TUM RGB-D layout plus two small TOML files::
       groundtruth.txt  optional: "timestamp tx ty tz qx qy qz qw", camera-to-world
       imu.txt          optional: "timestamp wx wy wz ax ay az", rad/s and m/s^2, camera frame
       joints.txt       optional: "timestamp q_elevation q_pan q_cyclotorsion", rad
+      depth.txt        optional: "timestamp path" of depth/<t>.png, TUM RGB-D's 16-bit depth
+                       images (z along the optic axis, metres x 5000; 0 = no depth), for
+                       evaluating maps (the twin renders them)
 
 Frames and units
 ----------------
@@ -66,6 +69,7 @@ _FMT_QUAT = "%.12f"
 _FMT_IMAGE_NAME = "%.6f"  # rgb/<t>.png, microseconds as the TUM data sets name them
 
 _SEQUENCE_FILES = "see shared/formats.md"
+DEPTH_SCALE = 5000.0  # TUM RGB-D: a depth PNG holds metres x 5000 (0.2 mm steps, up to 13.1 m)
 
 
 class SequenceError(ValueError):
@@ -560,6 +564,8 @@ class Sequence:
     groundtruth: Trajectory | None = None
     imu: ImuLog | None = None
     joints: JointLog | None = None
+    depth_timestamps: np.ndarray | None = None
+    depth_paths: list[Path] | None = None
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -570,6 +576,23 @@ class Sequence:
         path = self.paths[index]
         image, problem = _load_image(path, self.camera.width, self.camera.height)
         return Frame(index, float(self.timestamps[index]), path, image, problem)
+
+    def depth(self, index: int) -> np.ndarray | None:
+        """Depth image (H, W) float32 of frame ``index``, metres along the optic axis (NaN where
+        there is none), or None if the sequence has no depth for that frame's time."""
+        if self.depth_paths is None:
+            return None
+        t = self.timestamps[index]
+        j = int(np.argmin(np.abs(self.depth_timestamps - t)))
+        if abs(self.depth_timestamps[j] - t) > 1e-6:
+            return None
+        raw = cv2.imread(str(self.depth_paths[j]), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16:
+            raise SequenceError(f"{self.depth_paths[j]}: not a 16-bit depth PNG; depth images hold metres x "
+                                f"{DEPTH_SCALE:g} as uint16")
+        d = raw.astype(np.float32) / DEPTH_SCALE
+        d[raw == 0] = np.nan
+        return d
 
     def frames(self) -> Iterator[Frame]:
         """Every frame in rgb.txt order, loaded one at a time; never raises for bad images."""
@@ -599,20 +622,23 @@ def open_sequence(path: str | Path) -> Sequence:
         p = root / name
         return reader(p) if p.exists() else None
 
+    d_times, d_paths = _read_rgb_list(root / "depth.txt", "depth.txt") if (root / "depth.txt").exists() \
+        else (None, None)
     return Sequence(root=root, camera=camera, timestamps=times, paths=paths,
+                    depth_timestamps=d_times, depth_paths=d_paths,
                     target=optional("target.toml", load_target),
                     groundtruth=optional("groundtruth.txt", read_trajectory),
                     imu=optional("imu.txt", read_imu),
                     joints=optional("joints.txt", read_joints))
 
 
-def _read_rgb_list(path: Path) -> tuple[np.ndarray, list[Path]]:
-    """rgb.txt -> timestamps (N,) s and image paths relative to its folder."""
+def _read_rgb_list(path: Path, name: str = "rgb.txt") -> tuple[np.ndarray, list[Path]]:
+    """rgb.txt (or depth.txt) -> timestamps (N,) s and image paths relative to its folder."""
     if not path.is_file():
         raise SequenceError(f"{path}: missing; a sequence lists its images in rgb.txt, one "
                             f"'timestamp path' per line ({_SEQUENCE_FILES})")
     times, paths, prev_t, prev_n = [], [], -math.inf, 0
-    for n, s in _read_lines(path, "rgb.txt"):
+    for n, s in _read_lines(path, name):
         parts = s.split(maxsplit=1)  # the path may contain spaces
         if len(parts) != 2:
             raise SequenceError(f"{path}:{n}: expected 'timestamp path', got {s!r}; fix the line or "
@@ -720,6 +746,31 @@ class SequenceWriter:
         os.replace(tmp, path)
         self._last_name = name
         self._append("rgb.txt", f"{_FMT_TIME % t} {name}", t)
+        return path
+
+    def add_depth(self, t: float, depth_m: np.ndarray) -> Path:
+        """Save a depth image as depth/<t>.png (uint16, metres x 5000; NaN, <= 0 or beyond
+        13.1 m become 0, "no depth") and list it in depth.txt. depth_m : (H, W) metres along the
+        optic axis."""
+        t = float(t)
+        d = np.asarray(depth_m, dtype=np.float64)
+        if d.shape != (self.camera.height, self.camera.width):
+            raise SequenceError(f"depth image shape {d.shape} must be ({self.camera.height}, {self.camera.width}) "
+                                f"as camera.toml says")
+        self._check_time("depth.txt", t)
+        raw = np.round(np.nan_to_num(d, nan=0.0) * DEPTH_SCALE)
+        raw[(raw <= 0) | (raw > 65535)] = 0
+        name = f"depth/{_FMT_IMAGE_NAME % t}.png"
+        (self.root / "depth").mkdir(exist_ok=True)
+        ok, png = cv2.imencode(".png", raw.astype(np.uint16))
+        if not ok:
+            raise SequenceError(f"{self.root / name}: OpenCV could not encode the depth image as PNG")
+        path = self.root / name
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_bytes(png.tobytes())
+        os.replace(tmp, path)
+        self._line("depth.txt", ["# timestamp filename  (depth images: uint16, metres x 5000 along the optic "
+                                 "axis, 0 = none)"], f"{_FMT_TIME % t} {name}", t)
         return path
 
     def add_groundtruth(self, t: float, T_world_cam: np.ndarray) -> None:

@@ -192,7 +192,7 @@ def cmd_sim_record(args) -> int:
         scenario = replace(scenario, dim_to=args.dim_to)
     twin = make_twin(args.head, args.mount, args.camera)
     try:
-        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed)
+        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth)
     finally:
         twin.close()
     print(f"recorded {args.scenario} into {out}")
@@ -222,6 +222,12 @@ def cmd_eval(args) -> int:
     print(f"ATE (no alignment): RMSE {100 * e.ate_rmse_m:.2f} cm, max {100 * e.ate_max_m:.2f} cm")
     print(f"ATE (SE3-aligned):  RMSE {100 * e.ate_aligned_rmse_m:.2f} cm, max {100 * e.ate_aligned_max_m:.2f} cm")
     print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
+    if seq.depth_paths is not None and (Path(args.result) / "map.csv").exists():
+        from runtime.slam.eval import map_errors
+
+        m = map_errors(seq, Path(args.result) / "map.csv")
+        print(f"map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
+              f"median {100 * m.median_m:.2f} cm")
     return 0
 
 
@@ -307,6 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--mount", help="mount.toml from wvr placement map (default: on the right shoulder)")
     rec.add_argument("--camera", help="camera.toml (default: 640x480, f = 514.7 px)")
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
+    rec.add_argument("--depth", action="store_true",
+                     help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
     rec.set_defaults(func=cmd_sim_record)
 
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")

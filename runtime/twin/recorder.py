@@ -33,8 +33,9 @@ def target_in_first_frame(twin: Twin) -> Target:
 
 
 def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, seed: int = 0,
-           progress: bool = True) -> Path:
-    """Run a scenario (a name or a Scenario) with its scripted head and write the sequence to ``out``."""
+           progress: bool = True, depth: bool = False) -> Path:
+    """Run a scenario (a name or a Scenario) with its scripted head and write the sequence to
+    ``out``; with ``depth``, also the true depth of every frame (depth.txt, depth/<t>.png)."""
     out = Path(out)
     obs = twin.reset(scenario, seed=seed, seconds=seconds)
     n_frames = int(round(twin.seconds * twin.frame_rate))
@@ -44,6 +45,8 @@ def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, 
         for i in tqdm(range(n_frames), desc=f"record {twin.scenario.name}", unit="frame", disable=not progress):
             gt = twin.ground_truth
             w.add_frame(obs.t, obs.image)
+            if depth:
+                w.add_depth(obs.t, twin.render_depth())
             w.add_groundtruth(obs.t, gt.T_world_cam)
             w.add_joints(obs.t, obs.encoders)
             for row in obs.imu:

@@ -23,6 +23,7 @@ import os
 from dataclasses import dataclass
 from typing import Callable
 
+import cv2
 import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -251,6 +252,22 @@ class Twin:
         return Observation(t=self.t, image=img, imu=self._imu_samples(), encoders=np.array(enc))
 
     # ------------------------------------------------------------------ truth (evaluation only)
+    def render_depth(self) -> np.ndarray:
+        """(H, W) float32 depth of the current view, metres along the optic axis, aligned with
+        the camera's image (through the lens model's remap, nearest neighbour so that edges do
+        not blend near and far surfaces). Ground truth for evaluating maps; not an input."""
+        self.renderer.enable_depth_rendering()
+        try:
+            self.renderer.update_scene(self.data, camera=self.cam_id)
+            z = self.renderer.render().astype(np.float32)
+        finally:
+            self.renderer.disable_depth_rendering()
+        f = self.formation
+        if f.map_x is None:
+            return z
+        return cv2.remap(z, f.map_x, f.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+
+
     @property
     def ground_truth(self) -> GroundTruth:
         T = np.eye(4)

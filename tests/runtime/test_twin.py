@@ -154,3 +154,37 @@ def test_twin_renders_after_pyvista_has_closed_its_egl_window(tmp_path):
         assert obs.image.std() > 10
     finally:
         t.close()
+
+
+def test_recorded_depth_is_the_true_distance_along_the_optic_axis(tmp_path):
+    """Depth images (TUM RGB-D, metres x 5000) against the target's plane intersected with each
+    pixel's ray under the ground-truth pose; and map_errors on points placed on and off it."""
+    from runtime.slam.eval import map_errors
+
+    t = make_twin()
+    try:
+        seq_path = record(t, "workbench-static", tmp_path / "seq", seconds=0.2, seed=1, progress=False, depth=True)
+    finally:
+        t.close()
+    seq = open_sequence(seq_path)
+    assert len(seq.depth_paths) == len(seq)
+    d = seq.depth(0)
+    T = seq.groundtruth.T_world_cam()[0]
+    X = seq.target.xyz
+    c = X.mean(axis=0)
+    n = np.linalg.svd(X - c)[2][2]
+    # Pixels well inside the target (its black interior and white frame lie on its plane).
+    uv_c = seq.target.uv.mean(axis=0)
+    for du, dv in ((0, 0), (5, 3), (-6, 4), (3, -5)):
+        u, v = int(round(uv_c[0])) + du, int(round(uv_c[1])) + dv
+        ray = T[:3, :3] @ np.r_[(u - seq.camera.cx) / seq.camera.fx, (v - seq.camera.cy) / seq.camera.fy, 1.0]
+        z = n @ (c - T[:3, 3]) / (n @ ray)            # depth along the optic axis: ray has z = 1
+        assert abs(d[v, u] - z) < 1e-3, (d[v, u], z)
+    # A map point on the plane has no error; one pushed 5 cm along its viewing ray has 5 cm.
+    ray_c = c - T[:3, 3]
+    off = c + 0.05 * ray_c / np.linalg.norm(ray_c)
+    (tmp_path / "map.csv").write_text("id,x,y,z,first_frame\n" + "\n".join(
+        f"{i},{float(p[0])!r},{float(p[1])!r},{float(p[2])!r},0" for i, p in enumerate((c, off))) + "\n")
+    m = map_errors(seq, tmp_path / "map.csv")
+    assert list(m.ids) == [0, 1]
+    assert m.errors_m[0] < 2e-3 and abs(m.errors_m[1] - 0.05) < 3e-3, m.errors_m
