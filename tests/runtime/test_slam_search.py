@@ -64,3 +64,26 @@ def test_score_ignores_gain_and_offset_of_the_lighting():
     m = search(0.6 * img + 20.0, t, np.array([201.0, 149.0]), np.diag([9.0, 9.0]))
     assert m.found and m.score < 1e-3
     np.testing.assert_allclose(m.uv, [200, 150], atol=0.05)
+
+
+def test_local_plane_normal_recovers_a_plane_and_refuses_what_is_not_one():
+    from runtime.slam.system import local_plane_normal
+
+    rng = np.random.default_rng(1)
+    n_true = np.array([0.2, -0.3, 0.93])
+    n_true /= np.linalg.norm(n_true)
+    a = np.cross(n_true, [1.0, 0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n_true, a)
+    P = rng.uniform(-0.1, 0.1, (12, 2)) @ np.stack([a, b]) + np.array([0.5, 0.2, 1.0])
+    n = local_plane_normal(P, 0, radius=0.3, tol=0.005)
+    assert n is not None and abs(abs(n @ n_true) - 1) < 1e-9
+    # 2 mm noise: still a plane within 1 cm, normal within a few degrees.
+    Pn = P + rng.normal(0, 0.002, P.shape)
+    n = local_plane_normal(Pn, 0, radius=0.3, tol=0.01)
+    assert n is not None and np.degrees(np.arccos(min(abs(n @ n_true), 1.0))) < 5
+    # A blob, a line, and too few neighbours are not planes.
+    assert local_plane_normal(rng.normal(0, 0.05, (12, 3)), 0, 0.3, 0.01) is None
+    line = np.outer(np.linspace(0, 0.2, 8), a) + rng.normal(0, 1e-4, (8, 3))
+    assert local_plane_normal(line, 0, 0.3, 0.01) is None
+    assert local_plane_normal(P[:3], 0, 0.3, 0.01) is None
