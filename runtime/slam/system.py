@@ -88,6 +88,7 @@ class MapSettings:
     warp: str = "neighbours"
     plane_radius_m: float = 0.25      # map neighbours a natural feature's plane is fitted to
     plane_tol_m: float = 0.01         # their RMS distance from the plane, at most
+    normals_every: int = 10           # frames between refits while the map is unchanged
     warp_fallback: bool = True        # search with the first-view template if the warped one fails
 
 
@@ -121,11 +122,13 @@ def _patch(image: np.ndarray, uv) -> np.ndarray | None:
     return image[v - PATCH_HALF:v + PATCH_HALF + 1, u - PATCH_HALF:u + PATCH_HALF + 1].copy()
 
 
-def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
+def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIntrinsics,
+                    R_world_cam: np.ndarray | None = None) -> np.ndarray:
     """The feature's template as the current camera should see it: the first-view patch warped
     by the homography its plane (through y, normal ``f.normal``) induces between the two views
     (computed through the lens model at the patch's corners). Falls back to the stored template
-    when the feature has no patch or the warp degenerates."""
+    when the feature has no patch or the warp degenerates. ``R_world_cam`` : R(q) of ``x_v``
+    if the caller has it (one per frame)."""
     if f.patch is None or f.normal is None:
         return f.template
     from kinematics.camera import project, unproject
@@ -141,8 +144,10 @@ def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIn
     if np.any(np.abs(denom) < 1e-6):
         return f.template
     lam = (f.normal @ (y - f.r0)) / denom
-    X = np.vstack([f.r0 + lam[:, None] * d, y])           # the corners on the plane, and y
-    R = quat_to_rotation(x_v[3:7])
+    X = np.empty((5, 3))
+    X[:4] = f.r0 + lam[:, None] * d                       # the corners on the plane, and y
+    X[4] = y
+    R = quat_to_rotation(x_v[3:7]) if R_world_cam is None else R_world_cam
     uvc = project(cam, (X - x_v[:3]) @ R)
     uv, centre = uvc[:4], uvc[4]
     if not (np.all(np.isfinite(uvc)) and np.all(lam > 0)):
@@ -215,6 +220,7 @@ class MonoSLAM:
         self.frame = -1
         self.t_prev = None
         self.low_matches = 0
+        self._normals_n = -1
         self.stats: list[FrameStats] = []
 
     # -------------------------------------------------------------- start-up
@@ -280,8 +286,11 @@ class MonoSLAM:
             # A whole-image search costs tens of ms: one frame in reloc_every tries it.
             if (self.low_matches - self.s.lost_after) % self.s.reloc_every == 0:
                 st.relocalised = self._relocalise(g)
-        if self.s.warp == "neighbours":
+        if self.s.warp == "neighbours" and (self.frame % self.s.normals_every == 0
+                                            or self.state.n_features != self._normals_n):
+            # Neighbours' planes change slowly: refit when the map changes, else every few frames.
             self._normals_from_map()
+            self._normals_n = self.state.n_features
         self._measure(g, st)
         if lost and st.relocalised and st.matched < max(self.s.reloc_min_confirmed, st.searched / 2):
             # The active search at the new pose did not confirm it: stay lost, restore.
@@ -349,7 +358,11 @@ class MonoSLAM:
             f.attempts += 1
             warp = self.s.warp == "all" or (self.s.warp == "known" and f.known) or \
                 (self.s.warp == "neighbours" and (f.known or f.normal_from_map))
-            tpl = warped_template(f, su.x_v, su.feature(k), self.cam) if warp else f.template
+            if warp:
+                x_v = su.x_v
+                tpl = warped_template(f, x_v, su.feature(k), self.cam, quat_to_rotation(x_v[3:7]))
+            else:
+                tpl = f.template
             m = search(g, tpl, uv_k, S_k, max_score=self.s.match_score)
             if not m.found and tpl is not f.template and self.s.warp_fallback:
                 # The plane guess can be wrong (a natural feature's true surface): try as first seen.
