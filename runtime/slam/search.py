@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .state import compiled_kernel
+
 TEMPLATE_SIZE = 15          # pixels, as in MonoSLAM
 HALF = TEMPLATE_SIZE // 2
 
@@ -48,6 +50,7 @@ def extract_template(image: np.ndarray, uv) -> np.ndarray | None:
     return image[v - HALF:v + HALF + 1, u - HALF:u + HALF + 1].astype(np.float32).copy()
 
 
+@compiled_kernel()
 def _parabola(a: float, b: float, c: float) -> float:
     """Offset of the extremum of a parabola through (-1, a), (0, b), (1, c), clamped to +-0.5."""
     d = a - 2 * b + c
@@ -81,21 +84,42 @@ def search(image: np.ndarray, template: np.ndarray, uv_pred: np.ndarray, S: np.n
         return miss
     window = img[v0 - HALF:v1 + HALF + 1, u0 - HALF:u1 + HALF + 1]
     t = template if template.dtype == np.float32 else template.astype(np.float32)
-    scores = 2.0 * (1.0 - cv2.matchTemplate(window, t, cv2.TM_CCOEFF_NORMED))
-    # Mask positions outside the ellipse: (p - uv)^T S^-1 (p - uv) > n^2, with the 2x2 inverse
-    # written out (S^-1 = [[c, -b], [-b, a]] / det).
-    du = np.arange(u0, u1 + 1) - float(uv_pred[0])
-    dv = (np.arange(v0, v1 + 1) - float(uv_pred[1]))[:, None]
-    m2 = (c * du * du - 2.0 * b * du * dv + a * dv * dv) / det
-    scores[m2 > n_sigma**2] = np.inf
-    j, i = np.unravel_index(np.argmin(scores), scores.shape)
-    best = float(scores[j, i])
+    ncc = cv2.matchTemplate(window, t, cv2.TM_CCOEFF_NORMED)
+    i, j, best, du, dv = _best_in_ellipse(ncc, float(u0 - uv_pred[0]), float(v0 - uv_pred[1]),
+                                          c / det, -b / det, a / det, n_sigma * n_sigma)
     if not math.isfinite(best):
         return miss
-    nj, ni = scores.shape
-    du = _parabola(scores[j, i - 1], best, scores[j, i + 1]) if 0 < i < ni - 1 \
-        and math.isfinite(scores[j, i - 1]) and math.isfinite(scores[j, i + 1]) else 0.0
-    dv = _parabola(scores[j - 1, i], best, scores[j + 1, i]) if 0 < j < nj - 1 \
-        and math.isfinite(scores[j - 1, i]) and math.isfinite(scores[j + 1, i]) else 0.0
     uv = np.array([u0 + i + du, v0 + j + dv])
     return Match(uv, best, best <= max_score)
+
+
+@compiled_kernel()
+def _best_in_ellipse(ncc, du0, dv0, iaa, iab, ibb, n2):
+    """Least score ``2 (1 - ncc)`` over the window positions inside the ellipse
+    ``(p - uv)^T S^-1 (p - uv) <= n2`` (``S^-1 = [[iaa, iab], [iab, ibb]]``; position (i, j) of
+    the window is at offset (du0 + i, dv0 + j) from uv), and its sub-pixel refinement by a
+    parabola through the neighbours in each direction (when both are inside too).
+    Returns (i, j, score, du, dv); score is inf when no position is inside."""
+    nj, ni = ncc.shape
+    best, bi, bj = np.inf, -1, -1
+    for j in range(nj):
+        dv = dv0 + j
+        for i in range(ni):
+            du = du0 + i
+            if iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv <= n2:
+                sc = 2.0 * (1.0 - ncc[j, i])
+                if sc < best:
+                    best, bi, bj = sc, i, j
+    if bi < 0:
+        return 0, 0, np.inf, 0.0, 0.0
+
+    def inside(i, j):
+        du, dv = du0 + i, dv0 + j
+        return 0 <= i < ni and 0 <= j < nj and iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv <= n2
+
+    su = sv = 0.0
+    if inside(bi - 1, bj) and inside(bi + 1, bj):
+        su = _parabola(2.0 * (1.0 - ncc[bj, bi - 1]), best, 2.0 * (1.0 - ncc[bj, bi + 1]))
+    if inside(bi, bj - 1) and inside(bi, bj + 1):
+        sv = _parabola(2.0 * (1.0 - ncc[bj - 1, bi]), best, 2.0 * (1.0 - ncc[bj + 1, bi]))
+    return bi, bj, best, su, sv

@@ -20,7 +20,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, in_image, undistort
+from kinematics.camera import (CameraIntrinsics, in_image, lens_kernel_args, project_point_kernel, undistort,
+                               unproject)
 
 from ..sequence import Target
 from . import depth_init
@@ -32,7 +33,7 @@ from .motion import predict
 from .search import HALF as HALF_T
 from .search import extract_template, search
 from .state import (CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, check_covariance,
-                    quat_to_rotation)
+                    compiled_kernel, quat_to_rotation)
 
 
 @dataclass(frozen=True)
@@ -131,27 +132,18 @@ def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIn
     if the caller has it (one per frame)."""
     if f.patch is None or f.normal is None:
         return f.template
-    from kinematics.camera import project, unproject
-
     h = HALF_T
     c0 = np.round(f.uv0)
     src = c0 + np.array([[-h, -h], [h, -h], [h, h], [-h, h]], float)
     if f.rays0 is None:
         # The first view's world rays through the patch corners never change: unproject once.
         f.rays0 = unproject(cam, src) @ f.R0.T
-    d = f.rays0
-    denom = d @ f.normal
-    if np.any(np.abs(denom) < 1e-6):
-        return f.template
-    lam = (f.normal @ (y - f.r0)) / denom
-    X = np.empty((5, 3))
-    X[:4] = f.r0 + lam[:, None] * d                       # the corners on the plane, and y
-    X[4] = y
     R = quat_to_rotation(x_v[3:7]) if R_world_cam is None else R_world_cam
-    uvc = project(cam, (X - x_v[:3]) @ R)
-    uv, centre = uvc[:4], uvc[4]
-    if not (np.all(np.isfinite(uvc)) and np.all(lam > 0)):
+    model, params = lens_kernel_args(cam)
+    uvc = _plane_corners_in_view(f.rays0, f.normal, f.r0, y, x_v[:3], R, model, params)
+    if not np.all(np.isfinite(uvc)):
         return f.template
+    uv, centre = uvc[:4], uvc[4]
     side = np.linalg.norm(uv[1] - uv[0]) / (2 * h)
     if not 0.5 < side < 2.0:                              # the template is no longer valid
         return f.template
@@ -159,6 +151,35 @@ def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIn
     dst_t = (uv - (centre - h)).astype(np.float32)
     M = cv2.getPerspectiveTransform(src_p, dst_t)
     return cv2.warpPerspective(f.patch, M, (2 * h + 1, 2 * h + 1), flags=cv2.INTER_LINEAR)
+
+
+@compiled_kernel(project_point_kernel)
+def _plane_corners_in_view(rays0, normal, r0, y, r, R, model, params):
+    """Pixels (5, 2) in the current view of the first view's patch corners on the plane through
+    ``y`` with ``normal`` (the corners' world rays ``rays0`` (4, 3) from ``r0``), and of ``y``
+    itself (row 4); NaN rows make the whole warp invalid (a ray parallel to the plane, a corner
+    behind either camera)."""
+    out = np.full((5, 2), np.nan)
+    c = normal[0] * (y[0] - r0[0]) + normal[1] * (y[1] - r0[1]) + normal[2] * (y[2] - r0[2])
+    for i in range(5):
+        if i < 4:
+            den = normal[0] * rays0[i, 0] + normal[1] * rays0[i, 1] + normal[2] * rays0[i, 2]
+            if abs(den) < 1e-6:
+                return np.full((5, 2), np.nan)
+            lam = c / den
+            if not lam > 0:
+                return np.full((5, 2), np.nan)
+            X0, X1, X2 = r0[0] + lam * rays0[i, 0], r0[1] + lam * rays0[i, 1], r0[2] + lam * rays0[i, 2]
+        else:
+            X0, X1, X2 = y[0], y[1], y[2]
+        d0, d1, d2 = X0 - r[0], X1 - r[1], X2 - r[2]
+        # Optical-frame point R^T (X - r).
+        px = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+        py = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+        pz = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+        res = project_point_kernel(model, params, px, py, pz)
+        out[i, 0], out[i, 1] = res[0], res[1]
+    return out
 
 
 def local_plane_normal(Y: np.ndarray, k: int, radius: float, tol: float, min_points: int = 4) -> np.ndarray | None:
