@@ -735,15 +735,7 @@ class SequenceWriter:
             raise SequenceError(f"frame time {t!r} names the same file {name} as the previous frame; "
                                 f"frames must be at least 1 us apart")
         bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
-        ok, png = cv2.imencode(".png", bgr)
-        if not ok:
-            raise SequenceError(f"{self.root / name}: OpenCV could not encode the image as PNG")
-        # Write to a temporary name and rename: rgb.txt never lists a half-written image, even
-        # if the process dies mid-write.
-        path = self.root / name
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_bytes(png.tobytes())
-        os.replace(tmp, path)
+        path = self._write_png(name, bgr)
         self._last_name = name
         self._append("rgb.txt", f"{_FMT_TIME % t} {name}", t)
         return path
@@ -762,13 +754,7 @@ class SequenceWriter:
         raw[(raw <= 0) | (raw > 65535)] = 0
         name = f"depth/{_FMT_IMAGE_NAME % t}.png"
         (self.root / "depth").mkdir(exist_ok=True)
-        ok, png = cv2.imencode(".png", raw.astype(np.uint16))
-        if not ok:
-            raise SequenceError(f"{self.root / name}: OpenCV could not encode the depth image as PNG")
-        path = self.root / name
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_bytes(png.tobytes())
-        os.replace(tmp, path)
+        path = self._write_png(name, raw.astype(np.uint16))
         self._line("depth.txt", ["# timestamp filename  (depth images: uint16, metres x 5000 along the optic "
                                  "axis, 0 = none)"], f"{_FMT_TIME % t} {name}", t)
         return path
@@ -796,6 +782,19 @@ class SequenceWriter:
                    _format_row(t, q, [_FMT_VALUE] * 3), t)
 
     # -- internals --
+    def _write_png(self, name: str, image: np.ndarray) -> Path:
+        """Encode ``image`` (OpenCV channel order) as root/name. Written to a temporary name and
+        renamed, so that a list file never names a half-written image, even if the process
+        dies mid-write."""
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise SequenceError(f"{self.root / name}: OpenCV could not encode the image as PNG")
+        path = self.root / name
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_bytes(png.tobytes())
+        os.replace(tmp, path)
+        return path
+
     def _open(self, name: str, header: list[str]) -> None:
         f = open(self.root / name, "w", encoding="utf-8")
         f.write("\n".join(header) + "\n")
