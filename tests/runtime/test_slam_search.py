@@ -87,3 +87,21 @@ def test_local_plane_normal_recovers_a_plane_and_refuses_what_is_not_one():
     line = np.outer(np.linspace(0, 0.2, 8), a) + rng.normal(0, 1e-4, (8, 3))
     assert local_plane_normal(line, 0, 0.3, 0.01) is None
     assert local_plane_normal(P[:3], 0, 0.3, 0.01) is None
+
+
+def test_new_features_are_kept_only_where_the_motion_keeps_them_in_view():
+    from kinematics.camera import default_camera
+    from runtime.slam.state import State
+    from runtime.slam.system import MonoSLAM
+
+    slam = MonoSLAM(default_camera())                   # 64 deg across; lookahead 0.6 s
+    uv = np.array([[320.0, 240.0], [40.0, 240.0], [600.0, 240.0]])   # centre, left edge, right edge
+    stays = {}
+    for w_y in (0.0, 0.5, -0.5):                        # turning about the optical y axis, rad/s
+        slam.state = State.from_camera(np.r_[0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0, w_y, 0], np.eye(13) * 1e-4)
+        stays[w_y] = slam._stay_in_view(uv)
+    assert stays[0.0].all()
+    # 0.3 rad in 0.6 s: the centre stays, the edge the camera turns away from leaves, the other stays.
+    for w_y in (0.5, -0.5):
+        assert stays[w_y][0] and stays[w_y][1] != stays[w_y][2], stays
+    assert stays[0.5][1] == stays[-0.5][2]
