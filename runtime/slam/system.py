@@ -100,6 +100,10 @@ class MapSettings:
     normals_every: int = 10           # frames between refits while the map is unchanged
     warp_fallback: bool = True        # search with the first-view template if the warped one fails
 
+    def __post_init__(self):
+        if self.warp not in ("known", "neighbours", "all"):
+            raise ValueError(f"MapSettings.warp = {self.warp!r}: give 'known', 'neighbours' or 'all'")
+
 
 @dataclass
 class MapFeature:
