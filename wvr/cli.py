@@ -321,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("seq", help="sequence folder (TUM layout with camera.toml and target.toml)")
     sl.add_argument("--out", required=True, help="output directory")
     sl.add_argument("--max-frames", type=int, help="stop after N frames")
-    sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles)")
+    sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles) and video.mp4")
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")

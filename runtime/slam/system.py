@@ -31,7 +31,7 @@ from .features import grey, new_features
 from .filter import FeatureNotMeasurable, SequentialUpdate, add_point_feature, innovation_covariances
 from .measurement import h_and_jacobians_many, ray_from_pixel
 from .relocalise import relocalise
-from .motion import predict
+from .motion import f_and_dfdx, predict
 from .search import HALF as HALF_T
 from .search import extract_template, search
 from .state import (CAMERA_DIM, DEFAULT_CONFIG, SlamConfig, SlamNumericalError, State, check_covariance,
@@ -135,13 +135,11 @@ def _patch(image: np.ndarray, uv) -> np.ndarray | None:
     return image[v - PATCH_HALF:v + PATCH_HALF + 1, u - PATCH_HALF:u + PATCH_HALF + 1].copy()
 
 
-def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIntrinsics,
-                    R_world_cam: np.ndarray | None = None) -> np.ndarray:
+def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
     """The feature's template as the current camera should see it: the first-view patch warped
     by the homography its plane (through y, normal ``f.normal``) induces between the two views
     (computed through the lens model at the patch's corners). Falls back to the stored template
-    when the feature has no patch or the warp degenerates. ``R_world_cam`` : R(q) of ``x_v``
-    if the caller has it (one per frame)."""
+    when the feature has no patch or the warp degenerates."""
     if f.patch is None or f.normal is None:
         return f.template
     h = HALF_T
@@ -150,9 +148,8 @@ def warped_template(f: MapFeature, x_v: np.ndarray, y: np.ndarray, cam: CameraIn
     if f.rays0 is None:
         # The first view's world rays through the patch corners never change: unproject once.
         f.rays0 = unproject(cam, src) @ f.R0.T
-    R = quat_to_rotation(x_v[3:7]) if R_world_cam is None else R_world_cam
     model, params = lens_kernel_args(cam)
-    uvc = _plane_corners_in_view(f.rays0, f.normal, f.r0, y, x_v[:3], R, model, params)
+    uvc = _plane_corners_in_view(f.rays0, f.normal, f.r0, y, x_v[:3], quat_to_rotation(x_v[3:7]), model, params)
     if not np.all(np.isfinite(uvc)):
         return f.template
     uv, centre = uvc[:4], uvc[4]
@@ -270,11 +267,7 @@ class MonoSLAM:
         R_cw, _ = cv2.Rodrigues(rvec)
         R_wc = R_cw.T
         r = -R_wc @ tvec.ravel()
-        from scipy.spatial.transform import Rotation
-        x, y, z, w = Rotation.from_matrix(R_wc).as_quat()
-        x_v = np.concatenate([r, [w, x, y, z], np.zeros(6)])
-        P = np.diag(np.r_[np.full(3, 1e-6), np.full(4, 1e-6), np.full(3, self.s.init_sigma_v**2),
-                          np.full(3, self.s.init_sigma_w**2)])
+        x_v, P = self._camera_prior(R_wc, r, 1e-3, 1e-3)
         self.state = State.from_camera(x_v, P)
         # Reprojection check: the target must be in front and where the file says.
         uv, _, _, valid = h_and_jacobians_many(x_v, target.xyz, self.cam)
@@ -391,11 +384,7 @@ class MonoSLAM:
             f.attempts += 1
             warp = self.s.warp == "all" or (self.s.warp == "known" and f.known) or \
                 (self.s.warp == "neighbours" and (f.known or f.normal_from_map))
-            if warp:
-                x_v = su.x_v
-                tpl = warped_template(f, x_v, su.feature(k), self.cam, quat_to_rotation(x_v[3:7]))
-            else:
-                tpl = f.template
+            tpl = warped_template(f, su.x_v, su.feature(k), self.cam) if warp else f.template
             m = search(g, tpl, uv_k, S_k, max_score=self.s.match_score)
             if not m.found and tpl is not f.template and self.s.warp_fallback:
                 # The plane guess can be wrong (a natural feature's true surface): try as first seen.
@@ -409,6 +398,17 @@ class MonoSLAM:
             used.append((k, m.uv))
         self._reject_outliers(su, used, st)
 
+    def _camera_prior(self, R_world_cam: np.ndarray, r: np.ndarray, sigma_r: float, sigma_q: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Camera block (13,) at a pose known from PnP (rotation, optical centre, world), at rest,
+        and its diagonal covariance: ``sigma_r`` m per position axis, ``sigma_q`` per quaternion
+        component, the settings' initial velocity uncertainties."""
+        x, y, z, w = Rotation.from_matrix(R_world_cam).as_quat()
+        x_v = np.concatenate([r, [w, x, y, z], np.zeros(6)])
+        P = np.diag(np.r_[np.full(3, sigma_r**2), np.full(4, sigma_q**2), np.full(3, self.s.init_sigma_v**2),
+                          np.full(3, self.s.init_sigma_w**2)])
+        return x_v, P
+
     def _relocalise(self, g: np.ndarray) -> bool:
         """Try to re-acquire the camera pose from the target and the most reliable mapped
         features (relocalise.py); on success restart the camera block there."""
@@ -421,19 +421,12 @@ class MonoSLAM:
                            self.s.match_score, min_inliers=self.s.reloc_min_inliers)
         if found is None:
             return False
-        from scipy.spatial.transform import Rotation
-
-        x, y, z, w = Rotation.from_matrix(found.R_world_cam).as_quat()
-        n = self.state.n
-        self.state.x[:CAMERA_DIM] = np.concatenate([found.r, [w, x, y, z], np.zeros(6)])
+        x_v, P_vv = self._camera_prior(found.R_world_cam, found.r, self.s.reloc_sigma_m, self.s.reloc_sigma_q)
+        self.state.x[:CAMERA_DIM] = x_v
         P = self.state.P.copy()
         P[:CAMERA_DIM, :] = 0.0
         P[:, :CAMERA_DIM] = 0.0
-        P[:CAMERA_DIM, :CAMERA_DIM] = np.diag(np.r_[np.full(3, self.s.reloc_sigma_m**2),
-                                                    np.full(4, self.s.reloc_sigma_q**2),
-                                                    np.full(3, self.s.init_sigma_v**2),
-                                                    np.full(3, self.s.init_sigma_w**2)])
-        assert P.shape == (n, n)
+        P[:CAMERA_DIM, :CAMERA_DIM] = P_vv
         self.state.P = P
         self.low_matches = 0
         return True
@@ -560,13 +553,11 @@ class MonoSLAM:
         """(k,) bool: whether each pixel's point (at ``lookahead_depth_m``) is still inside the
         image, ``margin_px`` in, after ``lookahead_s`` of the motion model's constant velocity."""
         x_v = self.state.x_v
-        r, v, w = x_v[:3], x_v[7:10], x_v[10:13]
-        R = quat_to_rotation(x_v[3:7])
         rays = unproject(self.cam, uv)                                     # (k, 3), z = 1
-        X = r + (self.s.lookahead_depth_m * rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ R.T
-        T = self.s.lookahead_s
-        R_next = R @ Rotation.from_rotvec(w * T).as_matrix()              # w: camera frame
-        uv_next = project_points(self.cam, (X - (r + v * T)) @ R_next)
+        X = x_v[:3] + (self.s.lookahead_depth_m * rays / np.linalg.norm(rays, axis=1, keepdims=True)) \
+            @ quat_to_rotation(x_v[3:7]).T
+        x_next, _ = f_and_dfdx(x_v, self.s.lookahead_s)                   # the camera then
+        uv_next = project_points(self.cam, (X - x_next[:3]) @ quat_to_rotation(x_next[3:7]))
         return in_image(self.cam, np.nan_to_num(uv_next, nan=-1e9), margin=self.s.margin_px)
 
     # -------------------------------------------------------------- outputs

@@ -34,10 +34,12 @@ class ImageFormation:
     map_x: np.ndarray | None = None
     map_y: np.ndarray | None = None
 
-    def form(self, rendered: np.ndarray) -> np.ndarray:
+    def form(self, rendered: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """The camera's image (or any per-pixel render, e.g. depth) from the pinhole render;
+        ``interpolation`` an OpenCV flag (nearest for depth, so edges never blend surfaces)."""
         if self.map_x is None:
             return rendered
-        return cv2.remap(rendered, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.remap(rendered, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
 def image_formation(cam: CameraIntrinsics, max_render: int = 2048) -> ImageFormation:

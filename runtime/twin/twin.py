@@ -262,10 +262,7 @@ class Twin:
             z = self.renderer.render().astype(np.float32)
         finally:
             self.renderer.disable_depth_rendering()
-        f = self.formation
-        if f.map_x is None:
-            return z
-        return cv2.remap(z, f.map_x, f.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        return self.formation.form(z, cv2.INTER_NEAREST)
 
 
     @property

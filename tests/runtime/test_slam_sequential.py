@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from kinematics.camera import CameraIntrinsics, project
+from kinematics.camera import project
 from runtime.slam.filter import (
     FeatureNotMeasurable,
     SequentialUpdate,
@@ -21,6 +21,7 @@ from runtime.slam.filter import (
 )
 from runtime.slam.motion import apply_quaternion_jacobian, normalise_quaternion_jacobian, predict
 from runtime.slam.state import (
+    CAMERA_DIM,
     DEFAULT_CONFIG,
     Q_SLICE,
     SlamNumericalError,
@@ -28,36 +29,21 @@ from runtime.slam.state import (
     check_covariance,
     feature_slice,
     quat_to_rotation,
-    rotvec_to_quat,
-    state_size,
 )
 
+import test_slam_core as core   # its map state and cameras (pytest puts this folder on sys.path)
+
 STEP_CFG = replace(DEFAULT_CONFIG, check_psd=False)   # as MonoSLAM.process runs the updates
-CAMERAS = {
-    "pinhole": CameraIntrinsics(width=640, height=480, fx=514.7, fy=514.7, cx=319.5, cy=239.5),
-    "brown": CameraIntrinsics(width=640, height=480, fx=500.0, fy=505.0, cx=322.0, cy=236.0,
-                              model="brown", k1=-0.25, k2=0.08, p1=1e-3, p2=-5e-4, k3=-0.01),
-    "fisheye": CameraIntrinsics(width=640, height=480, fx=300.0, fy=302.0, cx=318.0, cy=241.0,
-                                model="fisheye", k1=0.05, k2=-0.01, k3=0.003, k4=-0.001),
-    "radial-sqrt": CameraIntrinsics(width=640, height=480, fx=195.0, fy=195.0, cx=162.0, cy=125.0,
-                                    model="radial-sqrt", kd1=9e-7),
-}
+# The lens models of test_slam_core (the same cameras), plus the plain pinhole.
+CAMERAS = {"pinhole": core.PINHOLE, **core.CAMERAS}
 
 
 def map_state(rng, n_features: int) -> tuple[State, np.ndarray]:
-    """A camera looking along world +Z at points 2-4 m ahead, with a random full (correlated)
-    covariance whose q block is tangent to q (as a running filter's), after one prediction.
-    Returns the state and the true points (world, m)."""
-    q = rotvec_to_quat(rng.normal(0, 0.1, 3))
-    x_v = np.concatenate([rng.normal(0, 0.05, 3), q, rng.normal(0, 0.3, 3), rng.normal(0, 0.3, 3)])
-    Y = np.column_stack([rng.uniform(-1, 1, n_features), rng.uniform(-0.7, 0.7, n_features),
-                         rng.uniform(2, 4, n_features)])
-    n = state_size(n_features)
-    A = rng.normal(0, 0.02, (n, n))
-    Tq = np.eye(n)
-    Tq[3:7, 3:7] = np.eye(4) - np.outer(q, q)
-    P = Tq @ (A @ A.T + 1e-4 * np.eye(n)) @ Tq.T
-    s = State(np.concatenate([x_v, (Y + rng.normal(0, 0.02, Y.shape)).reshape(-1)]), P)
+    """test_slam_core's map state (a camera looking along world +Z at points 2-4 m ahead, full
+    correlated covariance, q block tangent to q) with the feature estimates 2 cm off the true
+    points, after one prediction. Returns the state and the true points (world, m)."""
+    s, Y = core.map_state(rng, n_features)
+    s.x[CAMERA_DIM:] += rng.normal(0, 0.02, Y.size)
     predict(s, 1 / 30, STEP_CFG)
     return s, Y
 
