@@ -428,7 +428,6 @@ class MonoSLAM:
         P[:, :CAMERA_DIM] = 0.0
         P[:CAMERA_DIM, :CAMERA_DIM] = P_vv
         self.state.P = P
-        self.low_matches = 0
         return True
 
     def _reject_outliers(self, su: SequentialUpdate, used: list, st: FrameStats) -> None:

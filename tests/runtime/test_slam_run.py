@@ -84,3 +84,24 @@ def test_lost_track_is_reported_and_reacquired_when_the_view_returns(sequence, t
     gt = open_sequence(seq).groundtruth
     err = np.linalg.norm(est.p_world_cam[45:] - gt.p_world_cam[45:], axis=1)
     assert err.max() < 0.03, err
+
+
+def test_a_pose_the_map_does_not_confirm_leaves_the_track_lost(sequence, tmp_path, monkeypatch):
+    import cv2
+
+    import runtime.slam.system as system
+    from runtime.slam.relocalise import Relocalisation
+
+    seq = tmp_path / "seq"
+    shutil.copytree(sequence, seq)
+    for p in open_sequence(seq).paths[12:30]:
+        cv2.imwrite(str(p), np.zeros_like(cv2.imread(str(p))))
+    # Every re-acquisition proposes a pose 1 m off: the active search cannot confirm it.
+    monkeypatch.setattr(system, "relocalise", lambda *a, **k: Relocalisation(np.eye(3), np.array([1.0, 1.0, 1.0]),
+                                                                             np.arange(4)))
+    run_slam(seq, tmp_path / "out", progress=False)
+    frames = json.loads((tmp_path / "out" / "stats.json").read_text())["frames"]
+    first = next(i for i, f in enumerate(frames) if f["lost"])
+    assert all(f["lost"] for f in frames[first:]), [f["lost"] for f in frames]
+    # From the first frame processed as lost on, the map stays frozen.
+    assert not any(f["relocalised"] or f["added"] or f["deleted"] for f in frames[first + 1:])
