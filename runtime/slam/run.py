@@ -105,6 +105,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         "lost_frames": sum(1 for s in slam.stats if s.lost), "lost": any(s.lost for s in slam.stats),
         "mean_matched": float(np.mean([s.matched for s in proc])) if proc else 0.0,
         "mean_ms_per_frame": 1000 * float(np.mean([s.seconds for s in proc])) if proc else 0.0,
+        "median_ms_per_frame": 1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
     }
     (out / "stats.json").write_text(json.dumps({"totals": totals, "frames": per_frame}, indent=1))
     return totals
