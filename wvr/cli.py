@@ -199,6 +199,36 @@ def cmd_sim_record(args) -> int:
     return 0
 
 
+def cmd_sim_run(args) -> int:
+    import math
+
+    from runtime.gaze import ControllerSettings
+    from runtime.twin.loop import Task, load_targets, run_closed_loop
+    from runtime.twin.scenarios import get_scenario
+
+    scenario = get_scenario(args.scenario)
+    targets = [np.asarray(t, float) for t in (args.target or [])]
+    dwell = args.dwell
+    if args.targets:
+        pts, file_dwell = load_targets(args.targets)
+        targets += list(pts)
+        dwell = file_dwell or dwell
+    if not targets and args.task == "fixate":
+        targets = [scenario.bench.target_corners().mean(axis=0)]
+    if any(np.shape(t) != (3,) for t in targets):
+        raise ValueError("--target takes three numbers X,Y,Z (world frame, m)")
+    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell)
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
+    twin = make_twin(args.head, args.mount, args.camera)
+    try:
+        s = run_closed_loop(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings)
+    finally:
+        twin.close()
+    print(Path(args.out, "report.md").read_text().split("![")[0].strip())
+    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, report.md")
+    return 0 if not s["refusals"] else 1
+
+
 def cmd_slam(args) -> int:
     from runtime.slam.run import run_slam
 
@@ -240,6 +270,8 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from runtime.twin.scenarios import SCENARIOS, TASKS
+
     p = argparse.ArgumentParser(
         prog="wvr",
         description="wvr: design, place and run an active wearable camera (Mayol, Davison, Tordoff, Murray).",
@@ -305,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="the MuJoCo twin: record sequences of the wearer and the head")
     ssub = sim.add_subparsers(dest="sim_command", metavar="SUBCOMMAND", required=True)
     rec = ssub.add_parser("record", help="record a scenario as a sequence (TUM layout, camera.toml, target.toml)")
-    rec.add_argument("--scenario", required=True, choices=["workbench-static", "walk", "sit-down"])
+    rec.add_argument("--scenario", required=True, choices=sorted(SCENARIOS))
     rec.add_argument("--out", required=True, help="output sequence folder")
     rec.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
     rec.add_argument("--seed", type=int, default=0, help="scene seed (textures, object layout, sensor noise)")
@@ -316,6 +348,24 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--depth", action="store_true",
                      help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
     rec.set_defaults(func=cmd_sim_record)
+
+    run = ssub.add_parser("run", help="closed loop: twin, SLAM and gaze controller (fixate, saccade, Path A, Path B)")
+    run.add_argument("--scenario", required=True, choices=sorted(SCENARIOS))
+    run.add_argument("--task", required=True, choices=list(TASKS))
+    run.add_argument("--target", action="append", type=_vector, metavar="X,Y,Z",
+                     help="world point to fixate or saccade to, m (repeatable; default for fixate: the scenario's "
+                          "known rectangle's centre)")
+    run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
+    run.add_argument("--dwell", type=float, default=2.0, help="seconds on each saccade target (default 2)")
+    run.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
+    run.add_argument("--limit", type=float, default=30.0,
+                     help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
+    run.add_argument("--seed", type=int, default=0, help="scene seed")
+    run.add_argument("--out", required=True, help="output directory")
+    run.add_argument("--head", help="head.toml (default: the reference head)")
+    run.add_argument("--mount", help="mount.toml (default: on the right shoulder)")
+    run.add_argument("--camera", help="camera.toml (default: 640x480)")
+    run.set_defaults(func=cmd_sim_run)
 
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")
     sl.add_argument("seq", help="sequence folder (TUM layout with camera.toml and target.toml)")

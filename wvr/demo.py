@@ -151,6 +151,41 @@ def stage_slam(out: Path, context: dict) -> str:
         f"- RPE over 1 s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg"])
 
 
+def stage_gaze(out: Path, context: dict) -> str:
+    """Closed loop: the chosen head fixates the target while the wearer walks towards it, the
+    controller seeing only SLAM (images), the IMU and the encoders."""
+    from kinematics import reference_head, save_head
+    from runtime.twin.loop import Task, run_closed_loop
+    from runtime.twin.scenarios import get_scenario
+    from wvr.cli import make_twin
+
+    head_file = out / "head.toml"
+    save_head(context.get("head") or reference_head(), head_file)
+    mount = context.get("mount")
+    sc = get_scenario("walk-ahead")
+    target = sc.bench.target_corners().mean(axis=0)
+    twin = make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    try:
+        s = run_closed_loop(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
+    except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
+        return f"The closed loop could not run with the chosen head and mount: {e}"
+    finally:
+        twin.close()
+    rel = out.name
+    lines = [f"`walk-ahead`, {s['seconds']:.1f} s: fixate the target's centre {np.round(target, 3).tolist()} m while "
+             f"walking towards it, controlled-motion limit {s['motion_limit_deg_s']:.0f} deg/s.", ""]
+    if "fixation_rms_deg" in s:
+        lines.append(f"- fixation error after the first second (true): RMS {s['fixation_rms_deg']:.2f} deg, "
+                     f"peak {s['fixation_peak_deg']:.2f} deg")
+    lines += [f"- SLAM in the loop: ATE RMSE {100 * s['ate_rmse_m']:.2f} cm, {s['lost_frames']} frames lost",
+              f"- peak commanded joint rate {s['peak_cmd_rate_deg_s']:.1f} deg/s; {s['prompts']} wearer prompts, "
+              f"{len(s['refusals'])} refusals",
+              "", f"Files: [report.md]({rel}/report.md), [joints.csv]({rel}/joints.csv), "
+              f"[trajectory.tum]({rel}/trajectory.tum), [groundtruth.txt]({rel}/groundtruth.txt).", "",
+              f"![fixation error]({rel}/fixation_error.png)"]
+    return "\n".join(lines)
+
+
 #: (folder, title, function) in pipeline order.
 STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("design", "Design: Pareto optimisation of the head's layout", stage_design),
@@ -158,6 +193,7 @@ STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("placement", "Placement: where on the body to wear it", stage_placement),
     ("twin", "Twin: a recording in the workbench scene", stage_twin),
     ("slam", "SLAM: MonoSLAM on the recording", stage_slam),
+    ("gaze", "Gaze control: closed-loop fixation while walking", stage_gaze),
 ]
 
 

@@ -65,12 +65,20 @@ class Scenario:
         raise ValueError(f"unknown gaze script {self.gaze!r}")
 
 
+#: What the closed loop's controller may be asked to do (runtime.twin.loop.Task).
+TASKS = ("fixate", "saccade", "stabilise", "body")
+
 SCENARIOS: dict[str, Scenario] = {
     "workbench-static": Scenario("workbench-static", "stand", 12.0, (0.0, 0.05), 0.0, "sweep-bench"),
     # Walking slowly along a long bench on the wearer's right (the body faces +x).
     "walk": Scenario("walk", "walk", 12.0, (-1.6, 0.05), math.pi / 2, "follow-bench", walk_speed_m_s=0.27,
                      bench=Workbench(centre_xy=(0.0, -0.75), size=(3.6, 0.7), target_xy=(-1.35, -0.6))),
     "sit-down": Scenario("sit-down", "sit-down", 6.0, (0.0, 0.15), 0.0, "hold-target", stool=True),
+    # The same walk towards a target on the bench 1.8 m ahead, which the head can fixate for
+    # the whole 6 s (the gaze task of the closed loop; walk's own target falls out of the
+    # head's reach within a second as the wearer walks away from it).
+    "walk-ahead": Scenario("walk-ahead", "walk", 6.0, (-1.6, 0.05), math.pi / 2, "hold-target", walk_speed_m_s=0.27,
+                           bench=Workbench(centre_xy=(0.0, -0.75), size=(3.6, 0.7), target_xy=(0.2, -0.6))),
 }
 
 

@@ -1,0 +1,314 @@
+"""The gaze controller (paper section 5, Fig. 2b): saccades and fixation from the SLAM camera
+pose, Path A (stabilise against the world from the IMU alone), Path B (hold a direction relative
+to the wearer's body) and 2D tracking.
+
+Each control period (one camera frame):
+
+1. **Where the head's mount is.** With a SLAM pose, ``T_world_mount = T_world_cam
+   inv(T_mount_cam(encoders))``: the camera pose composed with the inverse of the head's FK. The
+   IMU's attitude filter gives the rotation when SLAM has none (and always, for Path A).
+2. **Where it will be.** The command is reached a period from now (the servos ramp to it over
+   the frame) and the mount keeps moving with the wearer, so the mount pose is predicted
+   ``lead_s`` ahead: its angular rate is the gyro's (camera frame) less the joints' own
+   contribution, its velocity SLAM's camera velocity less the head's and the rotation's lever arm.
+3. **Desired angles.** The mode's target (a world point, a world attitude, a body direction,
+   an image point) goes through the fixation IK with the image-vertical rule.
+4. **Rates.** The rate QP (qp.py) follows that motion within the joint ranges, the
+   controlled-motion limit (default 30 deg/s, never above the servo's 10 rad/s) and smoothness.
+5. **Command.** The rates go through the kinematics servo filter; its output is what is sent.
+
+An unreachable target is refused with the IK's reason and a wearer prompt; while a target
+being held becomes unreachable (the wearer turned away), the head holds still and the prompt
+is repeated every ``prompt_every_s``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinematics import HeadGeometry, ServoFilter, forward_kinematics, gaze_at_direction, gaze_at_point
+from kinematics.camera import CameraIntrinsics, unproject
+
+from .attitude import AttitudeFilter
+from .prompts import Prompt, wearer_prompt
+from .qp import RateQP, RateQPSettings
+
+MODES = ("hold", "fixate", "saccade", "stabilise", "body", "track")
+UP = np.array([0.0, 0.0, 1.0])
+
+
+class GazeRefused(ValueError):
+    """A gaze target the head cannot reach from the wearer's current pose; carries a prompt."""
+
+    def __init__(self, reason: str, prompt: Prompt | None = None):
+        super().__init__(reason + (f"; ask the wearer to {prompt.text}" if prompt and prompt.kind != "none" else ""))
+        self.reason = reason
+        self.prompt = prompt
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """motion_limit_rad_s : the controlled-motion limit on every joint rate (paper: ~30 deg/s);
+    must not exceed the servos' own. lead_s : how far ahead the mount's pose is predicted
+    (None: one control period plus ``servo_lag_s``). prompt_every_s : how often a standing
+    prompt is repeated. landed_rad : a saccade has landed once the estimated gaze error is below
+    this and the joints have (nearly) stopped."""
+
+    motion_limit_rad_s: float = math.radians(30.0)
+    lead_s: float | None = None
+    servo_lag_s: float = 0.01
+    prompt_every_s: float = 1.0
+    landed_rad: float = math.radians(1.0)
+    qp: RateQPSettings = field(default_factory=RateQPSettings)
+
+
+@dataclass
+class GazeCommand:
+    """One period's output. q : (3,) the command sent (after the servo filter), rad. qd : (3,)
+    its rate, rad/s. q_desired : (3,) the IK's angles, or None when holding. error_rad : the
+    estimated angle between the optic axis and the target now (fixate, saccade, track), or the
+    attitude error (stabilise). prompt : set when the wearer is asked to move."""
+
+    t: float
+    mode: str
+    q: np.ndarray
+    qd: np.ndarray
+    q_desired: np.ndarray | None
+    error_rad: float = float("nan")
+    reachable: bool = True
+    prompt: Prompt | None = None
+    landed: bool = False
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    return Rotation.from_rotvec(w).as_matrix()
+
+
+class GazeController:
+    """Gaze control of the head from SLAM, IMU and encoders (no ground truth).
+
+    Parameters
+    ----------
+    head, camera : the head being driven and its camera.
+    q0 : (3,) the joint angles at start (the encoders), rad.
+    dt : the control period, s (the camera's frame period).
+    """
+
+    def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, q0, dt: float,
+                 settings: ControllerSettings = ControllerSettings()):
+        if not settings.motion_limit_rad_s > 0:
+            raise ValueError(f"motion_limit_rad_s = {settings.motion_limit_rad_s} must be positive")
+        if np.any(settings.motion_limit_rad_s > head.max_speed + 1e-12):
+            raise ValueError(f"the controlled-motion limit {settings.motion_limit_rad_s:.3g} rad/s exceeds the servos' "
+                             f"{float(np.min(head.max_speed)):.3g} rad/s; use at most that")
+        self.head = head
+        self.camera = camera
+        self.dt = float(dt)
+        self.s = settings
+        self.lead = settings.lead_s if settings.lead_s is not None else self.dt + settings.servo_lag_s
+        self.filter = ServoFilter(head, q0, speed_limit=settings.motion_limit_rad_s)
+        self.speed = self.filter.speed
+        self.qp = RateQP(settings.qp)
+        self.attitude = AttitudeFilter()
+        self.qd_prev = np.zeros(3)
+        self.mode = "hold"
+        self.target = None            # world point, world attitude (3, 3), mount direction, or pixel
+        self.T_world_mount: np.ndarray | None = None
+        self.v_mount = np.zeros(3)
+        self.w_mount = np.zeros(3)    # world frame, rad/s
+        self.q_enc = np.asarray(q0, float).copy()
+        self.t = 0.0
+        self._last_prompt_t = -np.inf
+        self.prompts: list[tuple[float, Prompt]] = []
+        self.landed = False
+
+    # ------------------------------------------------------------------ modes
+    def fixate(self, p_world) -> None:
+        """Hold the optic axis on a world point (m); refused (GazeRefused) if unreachable now."""
+        self._aim_at(p_world, "fixate")
+
+    def saccade(self, p_world) -> None:
+        """Move the gaze to a world point (in view or not) at the controlled-motion limit, then
+        hold it there (fixation). Refused if unreachable from the wearer's current pose."""
+        self._aim_at(p_world, "saccade")
+        self.landed = False
+
+    def stabilise(self, R_world_cam=None) -> None:
+        """Path A: hold the camera's attitude (default: the present one, from the IMU alone)."""
+        R = self.attitude.R if R_world_cam is None else np.asarray(R_world_cam, float)
+        if R is None:
+            raise ValueError("stabilise needs an attitude: step the controller with IMU samples first")
+        self.mode, self.target = "stabilise", R.copy()
+
+    def body(self, d_mount=None) -> None:
+        """Path B: hold a gaze direction relative to the wearer's body (mount frame); default
+        the present one. Refused if no joint angles point that way."""
+        if d_mount is None:
+            d_mount = forward_kinematics(self.head, self.filter.q).optic_axis
+        res = gaze_at_direction(self.head, d_mount, self._up_mount(), q_current=self.filter.q)
+        if not res.reachable:
+            raise GazeRefused(f"body direction {np.round(d_mount, 3).tolist()} unreachable: {res.reason}")
+        self.mode, self.target = "body", res.q.copy()
+
+    def track(self, uv) -> None:
+        """Keep an image point (pixel) centred, e.g. a 2D tracker's target; call again with
+        each new measurement."""
+        uv = np.asarray(uv, float)
+        if uv.shape != (2,) or not np.isfinite(uv).all():
+            raise ValueError(f"track target must be a finite pixel (u, v), got {uv.tolist()}")
+        self.mode, self.target = "track", uv
+
+    def hold(self) -> None:
+        self.mode, self.target = "hold", None
+
+    def _aim_at(self, p_world, mode: str) -> None:
+        p = np.asarray(p_world, float)
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise ValueError(f"gaze target must be a finite world point (x, y, z) m, got {p.tolist()}")
+        if self.T_world_mount is not None:
+            res = self._ik_point(p, self.T_world_mount)
+            if not res.reachable:
+                prompt = wearer_prompt(self.head, self.T_world_mount, p, self.filter.q)
+                self._emit(prompt, force=True)
+                raise GazeRefused(f"target {np.round(p, 3).tolist()} m is out of the head's reach: {res.reason}", prompt)
+        self.mode, self.target = mode, p
+
+    # ------------------------------------------------------------------ estimation
+    def _up_mount(self) -> np.ndarray:
+        if self.T_world_mount is not None:
+            return self.T_world_mount[:3, :3].T @ UP
+        if self.attitude.R is not None:
+            R_mount_cam = forward_kinematics(self.head, self.q_enc).R_mount_cam
+            return R_mount_cam @ self.attitude.R.T @ UP
+        return UP
+
+    def _estimate_mount(self, T_world_cam, v_world) -> None:
+        pose = forward_kinematics(self.head, self.q_enc)
+        if T_world_cam is not None:
+            T_mount_cam = pose.T_mount_cam
+            T = np.asarray(T_world_cam, float) @ np.linalg.inv(T_mount_cam)
+        elif self.attitude.R is not None:
+            # No vision: rotation from the IMU, position held where it was last seen.
+            T = np.eye(4) if self.T_world_mount is None else self.T_world_mount.copy()
+            T[:3, :3] = self.attitude.R @ pose.R_mount_cam.T
+        else:
+            return
+        R_wm = T[:3, :3]
+        # The head's own contribution to the camera's motion, at the rates of the last period.
+        w_joints_mount = pose.axes_mount.T @ self.qd_prev
+        R_wc = T[:3, :3] @ pose.R_mount_cam
+        # Without any gyro sample the wearer's rotation is unknown: assume still.
+        self.w_mount = (R_wc @ self.attitude.omega_cam - R_wm @ w_joints_mount) if self.attitude.t is not None \
+            else np.zeros(3)
+        if v_world is not None:
+            lever = R_wm @ pose.p_mount_cam                        # mount origin -> optical centre
+            v_joints = R_wm @ (np.cross(pose.axes_mount, pose.p_mount_cam - pose.origins_mount).T @ self.qd_prev)
+            self.v_mount = np.asarray(v_world, float) - np.cross(self.w_mount, lever) - v_joints
+        elif self.T_world_mount is not None and T_world_cam is not None:
+            self.v_mount = (T[:3, 3] - self.T_world_mount[:3, 3]) / self.dt
+        self.T_world_mount = T
+
+    def predicted_mount(self, lead: float | None = None) -> np.ndarray:
+        """(4, 4) the mount's pose ``lead`` s ahead at constant velocity."""
+        lead = self.lead if lead is None else lead
+        T = self.T_world_mount.copy()
+        T[:3, :3] = _so3_exp(self.w_mount * lead) @ T[:3, :3]
+        T[:3, 3] = T[:3, 3] + self.v_mount * lead
+        return T
+
+    def _ik_point(self, p_world, T_world_mount):
+        R, o = T_world_mount[:3, :3], T_world_mount[:3, 3]
+        return gaze_at_point(self.head, R.T @ (p_world - o), R.T @ UP, q_current=self.filter.q)
+
+    # ------------------------------------------------------------------ control
+    def _emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
+        if prompt.kind == "ok":          # reachable from where the wearer is now: nothing to ask
+            return None
+        if force or self.t - self._last_prompt_t >= self.s.prompt_every_s:
+            self._last_prompt_t = self.t
+            self.prompts.append((self.t, prompt))
+            return prompt
+        return None
+
+    def _desired(self) -> tuple[np.ndarray | None, float, bool, Prompt | None]:
+        """The mode's desired angles, its error estimate, reachability and any prompt."""
+        q = self.filter.q
+        if self.mode == "hold" or self.T_world_mount is None and self.mode in ("fixate", "saccade"):
+            return None, float("nan"), True, None
+        if self.mode in ("fixate", "saccade"):
+            p = self.target
+            T_now = self.T_world_mount @ forward_kinematics(self.head, self.q_enc).T_mount_cam
+            d = p - T_now[:3, 3]
+            err = math.acos(float(np.clip(T_now[:3, 2] @ d / np.linalg.norm(d), -1.0, 1.0)))
+            res = self._ik_point(p, self.predicted_mount())
+            if not res.reachable:
+                prompt = self._emit(wearer_prompt(self.head, self.T_world_mount, p, q))
+                return None, err, False, prompt
+            return res.q, err, True, None
+        if self.mode == "stabilise":
+            if self.attitude.R is None:
+                return None, float("nan"), True, None
+            R_wm = self.attitude.R @ forward_kinematics(self.head, self.q_enc).R_mount_cam.T
+            R_wm_pred = _so3_exp(self.w_mount * self.lead) @ R_wm
+            R_mc_des = R_wm_pred.T @ self.target
+            err = float(Rotation.from_matrix(self.target.T @ self.attitude.R).magnitude())
+            # Optic axis from the desired z; "up" = the desired image's up (-y), so the vertical
+            # rule reproduces the desired roll exactly (z x -y = x).
+            res = gaze_at_direction(self.head, R_mc_des[:, 2], -R_mc_des[:, 1], q_current=q)
+            return (res.q if res.reachable else None), err, res.reachable, None
+        if self.mode == "body":
+            return self.target, float(np.linalg.norm(self.target - q)), True, None
+        if self.mode == "track":
+            pose = forward_kinematics(self.head, self.q_enc)
+            ray = unproject(self.camera, self.target[None])[0]
+            ray = ray / np.linalg.norm(ray)
+            err = math.acos(float(np.clip(ray[2], -1.0, 1.0)))
+            d_mount = pose.R_mount_cam @ ray
+            if self.T_world_mount is not None or self.attitude.R is not None:
+                # The body keeps turning while the command is reached: look where the point will be.
+                R_wm = self.T_world_mount[:3, :3] if self.T_world_mount is not None else \
+                    self.attitude.R @ pose.R_mount_cam.T
+                d_mount = (R_wm.T @ _so3_exp(-self.w_mount * self.lead) @ R_wm) @ d_mount
+            res = gaze_at_direction(self.head, d_mount, self._up_mount(), q_current=q)
+            return (res.q if res.reachable else None), err, res.reachable, None
+        raise ValueError(f"unknown mode {self.mode!r}; one of {MODES}")
+
+    def step(self, t: float, imu, encoders, T_world_cam=None, v_world=None) -> GazeCommand:
+        """One control period.
+
+        t : s. imu : (k, 7) IMU rows since the last step. encoders : (3,) rad.
+        T_world_cam : (4, 4) SLAM's camera pose, or None (lost, or no SLAM).
+        v_world : (3,) SLAM's camera velocity, m/s, or None.
+        """
+        self.t = float(t)
+        enc = np.asarray(encoders, float)
+        if enc.shape != (3,) or not np.isfinite(enc).all():
+            raise ValueError(f"encoder angles must be 3 finite radians, got {np.asarray(encoders).tolist()}")
+        self.q_enc = enc
+        self.attitude.update(imu)
+        if T_world_cam is not None and not np.isfinite(np.asarray(T_world_cam, float)).all():
+            T_world_cam = None
+        self._estimate_mount(T_world_cam, v_world)
+        q_des, err, reachable, prompt = self._desired()
+        q = self.filter.q
+        if q_des is None:
+            qd_des = np.zeros(3)
+        else:
+            qd_des = (q_des - q) / self.dt
+        lo, hi = RateQP.bounds(q, self.head.lower, self.head.upper, self.speed, self.dt)
+        pose = forward_kinematics(self.head, q)
+        J_cam = pose.R_mount_cam.T @ pose.axes_mount.T          # camera-frame angular velocity per joint rate
+        qd = self.qp.solve(J_cam, qd_des, self.qd_prev, lo, hi)
+        q_cmd = self.filter.step_rate(qd, self.dt)            # the hard limits: range and speed
+        qd_sent = (q_cmd - q) / self.dt
+        self.qd_prev = qd_sent
+        landed = False
+        if self.mode == "saccade" and not self.landed and reachable and err < self.s.landed_rad \
+                and np.max(np.abs(qd_sent)) < 0.2 * float(np.min(self.speed)):
+            self.landed = landed = True
+        return GazeCommand(t=self.t, mode=self.mode, q=q_cmd, qd=qd_sent, q_desired=q_des, error_rad=err,
+                           reachable=reachable, prompt=prompt, landed=landed)
