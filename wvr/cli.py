@@ -232,7 +232,12 @@ def cmd_sim_run(args) -> int:
 def cmd_slam(args) -> int:
     from runtime.slam.run import run_slam
 
-    totals = run_slam(args.seq, args.out, max_frames=args.max_frames, video=args.video)
+    from dataclasses import replace
+
+    from runtime.slam.system import MapSettings
+
+    settings = replace(MapSettings(), use_imu=not args.no_imu, bias_time_s=args.imu_bias_time)
+    totals = run_slam(args.seq, args.out, max_frames=args.max_frames, video=args.video, settings=settings)
     print(f"{totals['frames']} frames ({totals['skipped']} skipped), {totals['features']} features in the map, "
           f"{totals['mean_matched']:.1f} matched per frame, {totals['mean_ms_per_frame']:.1f} ms per frame"
           + ("; track was LOST for " + str(totals["lost_frames"]) + " frames" if totals["lost"] else ""))
@@ -372,6 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--out", required=True, help="output directory")
     sl.add_argument("--max-frames", type=int, help="stop after N frames")
     sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles) and video.mp4")
+    sl.add_argument("--no-imu", action="store_true",
+                    help="ignore imu.txt (camera only: the constant-velocity motion model)")
+    sl.add_argument("--imu-bias-time", type=float, default=0.0, metavar="S",
+                    help="estimate the IMU's biases with this time constant, s (default 0: the IMU is calibrated)")
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")

@@ -65,6 +65,8 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             if f.image is None:
                 raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
             slam.start(f.image, f.t, seq.target)
+            if seq.imu is not None:
+                slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
         elif f.image is None:
             slam.skip(f.t, f.problem or "unreadable")
             skipped += 1

@@ -155,7 +155,7 @@ def run_closed_loop(twin: Twin, scenario, task: Task, out: str | Path, seconds: 
             break
         obs = twin.step(cmd.q)
         if slam is not None:
-            slam.process(obs.image, obs.t)
+            slam.process(obs.image, obs.t, imu=obs.imu)
 
     times = np.array(times)
     gt_T = np.array(gt_T)
