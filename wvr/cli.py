@@ -217,7 +217,13 @@ def cmd_sim_run(args) -> int:
         targets = [scenario.bench.target_corners().mean(axis=0)]
     if any(np.shape(t) != (3,) for t in targets):
         raise ValueError("--target takes three numbers X,Y,Z (world frame, m)")
-    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell)
+    region = None
+    if getattr(args, "init", None) is not None:
+        if np.shape(args.init) != (4,):
+            raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
+        region = tuple(float(v) for v in args.init)
+    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
+                method=getattr(args, "method", "hyperplane"))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     twin = make_twin(args.head, args.mount, args.camera)
     try:
@@ -227,6 +233,45 @@ def cmd_sim_run(args) -> int:
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
     print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, report.md")
     return 0 if not s["refusals"] else 1
+
+
+def cmd_stabilise(args) -> int:
+    from runtime.vision2d.stabilise import stabilise_sequence
+
+    fovea = _size(args.fovea, "--fovea")
+    totals = stabilise_sequence(args.seq, args.out, fovea=fovea, use_imu=args.imu)
+    print(json.dumps(totals, indent=1))
+    print(f"wrote {Path(args.out) / 'rotations.tum'}, fovea/, report.md")
+    return 0
+
+
+def _size(text: str, flag: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"{flag} {text!r}: give the size as WxH in pixels, e.g. 320x240") from None
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{flag} {text!r}: width and height must be positive")
+    return w, h
+
+
+def cmd_track(args) -> int:
+    if args.servo:
+        # The closed loop: the twin's head keeps the tracked target centred (gaze track mode).
+        if not args.scenario:
+            raise ValueError("--servo runs the closed loop in the twin: give --scenario NAME (and no SEQ)")
+        args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, 30.0
+        return cmd_sim_run(args)
+    if not args.seq:
+        raise ValueError("give the sequence folder SEQ (or --servo --scenario NAME for the closed loop)")
+    if args.init is None or np.shape(args.init) != (4,):
+        raise ValueError("--init X,Y,W,H is required: the target's box in the first frame, pixels")
+    from runtime.vision2d.track import track_sequence
+
+    totals = track_sequence(args.seq, args.out, init=tuple(float(v) for v in args.init), method=args.method)
+    print(json.dumps(totals, indent=1))
+    print(f"wrote {Path(args.out) / 'polygons.csv'}, annotated/, stats.json")
+    return 0
 
 
 def cmd_slam(args) -> int:
@@ -365,12 +410,37 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
     run.add_argument("--limit", type=float, default=30.0,
                      help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
+    run.add_argument("--init", type=_vector, metavar="X,Y,W,H",
+                     help="track: the region in the first frame, pixels (default: the known rectangle)")
+    run.add_argument("--method", choices=["hyperplane", "meanshift"], default="hyperplane", help="track: the 2D tracker")
     run.add_argument("--seed", type=int, default=0, help="scene seed")
     run.add_argument("--out", required=True, help="output directory")
     run.add_argument("--head", help="head.toml (default: the reference head)")
     run.add_argument("--mount", help="mount.toml (default: on the right shoulder)")
     run.add_argument("--camera", help="camera.toml (default: 640x480)")
     run.set_defaults(func=cmd_sim_run)
+
+    stab = sub.add_parser("stabilise", help="visual (and inertial) stabilisation with a software fovea")
+    stab.add_argument("seq", help="sequence folder (TUM layout with camera.toml)")
+    stab.add_argument("--out", required=True, help="output directory")
+    stab.add_argument("--fovea", default="320x240", help="fovea size WxH, pixels (default 320x240)")
+    stab.add_argument("--imu", action="store_true", help="use imu.txt's gyro to predict each frame's rotation")
+    stab.set_defaults(func=cmd_stabilise)
+
+    trk = sub.add_parser("track", help="2D object tracking (hyperplane planar tracker or mean shift); --servo in the twin")
+    trk.add_argument("seq", nargs="?", help="sequence folder (not with --servo)")
+    trk.add_argument("--init", type=_vector, metavar="X,Y,W,H", help="the target's box in the first frame, pixels")
+    trk.add_argument("--method", choices=["hyperplane", "meanshift"], default="hyperplane")
+    trk.add_argument("--out", required=True, help="output directory")
+    trk.add_argument("--servo", action="store_true",
+                     help="closed loop in the twin: the gaze controller keeps the target centred")
+    trk.add_argument("--scenario", choices=sorted(SCENARIOS), help="with --servo: the twin scenario")
+    trk.add_argument("--seconds", type=float, help="with --servo: duration (default: the scenario's)")
+    trk.add_argument("--seed", type=int, default=0, help="with --servo: scene seed")
+    trk.add_argument("--head", help="with --servo: head.toml")
+    trk.add_argument("--mount", help="with --servo: mount.toml")
+    trk.add_argument("--camera", help="with --servo: camera.toml")
+    trk.set_defaults(func=cmd_track)
 
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")
     sl.add_argument("seq", help="sequence folder (TUM layout with camera.toml and target.toml)")

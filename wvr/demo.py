@@ -102,17 +102,23 @@ def stage_placement(out: Path, context: dict) -> str:
         + ", ".join(f"[{k} map]({rel}/{v})" for k, v in s["maps"].items()) + ".", "", maps, "", zones])
 
 
-def stage_twin(out: Path, context: dict) -> str:
-    """A short workbench-static recording of the chosen head on the chosen mount."""
-    from kinematics import reference_head, save_head
-    from runtime.sequence import open_sequence
-    from runtime.twin.recorder import record
+def _twin(out: Path, context: dict):
+    """A twin with the head and mount the earlier stages chose (written into ``out``)."""
     from wvr.cli import make_twin
 
     head_file = out / "head.toml"
     save_head(context.get("head") or reference_head(), head_file)
     mount = context.get("mount")
-    twin = make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    return make_twin(head_file, mount if mount and Path(mount).exists() else None)
+
+
+def stage_twin(out: Path, context: dict) -> str:
+    """A short workbench-static recording of the chosen head on the chosen mount."""
+    from runtime.sequence import open_sequence
+    from runtime.twin.recorder import record
+
+    mount = context.get("mount")
+    twin = _twin(out, context)
     try:
         seq_dir = record(twin, "workbench-static", out / "workbench-static", seconds=3.0, seed=0, progress=False)
     finally:
@@ -154,17 +160,12 @@ def stage_slam(out: Path, context: dict) -> str:
 def stage_gaze(out: Path, context: dict) -> str:
     """Closed loop: the chosen head fixates the target while the wearer walks towards it, the
     controller seeing only SLAM (images), the IMU and the encoders."""
-    from kinematics import reference_head, save_head
     from runtime.twin.loop import Task, run_closed_loop
     from runtime.twin.scenarios import get_scenario
-    from wvr.cli import make_twin
 
-    head_file = out / "head.toml"
-    save_head(context.get("head") or reference_head(), head_file)
-    mount = context.get("mount")
     sc = get_scenario("walk-ahead")
     target = sc.bench.target_corners().mean(axis=0)
-    twin = make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    twin = _twin(out, context)
     try:
         s = run_closed_loop(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
     except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
@@ -186,6 +187,29 @@ def stage_gaze(out: Path, context: dict) -> str:
     return "\n".join(lines)
 
 
+def stage_stabilise(out: Path, context: dict) -> str:
+    """Stabilisation with a software fovea on a short sit-down recording (IMU-aided)."""
+    from runtime.twin.recorder import record
+    from runtime.vision2d.stabilise import stabilise_sequence
+
+    twin = _twin(out, context)
+    try:
+        seq = record(twin, "sit-down", out / "sit-down", seconds=3.0, seed=0, progress=False)
+    finally:
+        twin.close()
+    s = stabilise_sequence(seq, out / "stabilised", use_imu=True, progress=False)
+    rel = f"{out.name}/stabilised"
+    lines = [f"3 s of `sit-down`, fovea 320x240, gyro-predicted and vision-measured rotation: {s['frames']} frames, "
+             f"{s['flagged']} flagged, {s['clamped']} with the fovea at the image edge.", ""]
+    if "rotation_rms_error_deg" in s:
+        lines.append(f"- inter-frame rotation against the truth: RMS {s['rotation_rms_error_deg']:.3f} deg, "
+                     f"max {s['rotation_max_error_deg']:.3f} deg")
+    lines += [f"- background motion: raw {s['raw_motion_px']:.2f} px/frame, fovea {s['fovea_motion_px']:.2f} "
+              f"(ratio {s['motion_ratio']:.2f}; the head already holds its gaze, so what is left is mostly parallax)",
+              "", f"Files: [report.md]({rel}/report.md), [rotations.tum]({rel}/rotations.tum), [fovea.csv]({rel}/fovea.csv)."]
+    return "\n".join(lines)
+
+
 #: (folder, title, function) in pipeline order.
 STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("design", "Design: Pareto optimisation of the head's layout", stage_design),
@@ -194,6 +218,7 @@ STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("twin", "Twin: a recording in the workbench scene", stage_twin),
     ("slam", "SLAM: MonoSLAM on the recording", stage_slam),
     ("gaze", "Gaze control: closed-loop fixation while walking", stage_gaze),
+    ("stabilise", "Stabilisation: a software fovea on the sit-down recording", stage_stabilise),
 ]
 
 

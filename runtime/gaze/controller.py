@@ -37,7 +37,7 @@ from .attitude import AttitudeFilter
 from .prompts import Prompt, wearer_prompt
 from .qp import RateQP, RateQPSettings
 
-MODES = ("hold", "fixate", "saccade", "stabilise", "body", "track")
+MODES = ("hold", "fixate", "saccade", "stabilise", "body", "track", "slave")
 UP = np.array([0.0, 0.0, 1.0])
 
 
@@ -162,6 +162,18 @@ class GazeController:
             raise ValueError(f"track target must be a finite pixel (u, v), got {uv.tolist()}")
         self.mode, self.target = "track", uv
 
+    def slave(self, q) -> None:
+        """Follow joint angles given from outside (3,), rad: a tracked person's head mapped onto
+        the wearable's joints (vision2d.headtrack.head_to_joint_targets). Call again with each
+        new target; angles outside the joint ranges are refused (map them into range first)."""
+        q = np.asarray(q, float)
+        if q.shape != (3,) or not np.isfinite(q).all():
+            raise ValueError(f"slave target must be 3 finite joint angles, rad, got {q.tolist()}")
+        out = (q < self.head.lower - 1e-12) | (q > self.head.upper + 1e-12)
+        if out.any():
+            raise GazeRefused(f"slave target {np.degrees(q).round(1).tolist()} deg lies outside the joint ranges")
+        self.mode, self.target = "slave", q.copy()
+
     def hold(self) -> None:
         self.mode, self.target = "hold", None
 
@@ -260,7 +272,7 @@ class GazeController:
             # rule reproduces the desired roll exactly (z x -y = x).
             res = gaze_at_direction(self.head, R_mc_des[:, 2], -R_mc_des[:, 1], q_current=q)
             return (res.q if res.reachable else None), err, res.reachable, None
-        if self.mode == "body":
+        if self.mode in ("body", "slave"):
             return self.target, float(np.linalg.norm(self.target - q)), True, None
         if self.mode == "track":
             pose = forward_kinematics(self.head, self.q_enc)

@@ -10,6 +10,8 @@ Tasks
 ``saccade``  saccade through the targets in turn, ``dwell_s`` on each (cycling), fixating in between.
 ``stabilise`` Path A: hold the camera's starting attitude from the IMU alone (no vision).
 ``body``     Path B: hold the starting gaze direction relative to the wearer's body.
+``track``    keep a 2D tracker's target centred (the known rectangle by default), the tracker
+             (hyperplane or mean shift, runtime.vision2d) seeing only the images.
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from kinematics import JOINT_NAMES
@@ -44,6 +45,8 @@ class Task:
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     dwell_s: float = 2.0
+    region: tuple | None = None       # track: (x, y, w, h) pixels in the first frame (default: the rectangle)
+    method: str = "hyperplane"        # track: "hyperplane" or "meanshift"
 
     def __post_init__(self):
         if self.kind not in TASKS:
@@ -55,6 +58,8 @@ class Task:
             raise ValueError(f"task {self.kind} needs a target: give --target X,Y,Z or --targets FILE")
         if self.kind == "saccade" and len(t) < 2:
             raise ValueError("task saccade needs at least two targets (--targets FILE)")
+        if self.method not in ("hyperplane", "meanshift"):
+            raise ValueError(f"track method {self.method!r}: use 'hyperplane' or 'meanshift'")
         if not self.dwell_s > 0:
             raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
         object.__setattr__(self, "targets", t)
@@ -105,6 +110,9 @@ def run_closed_loop(twin: Twin, scenario, task: Task, out: str | Path, seconds: 
         slam = MonoSLAM(twin.camera)
         slam.start(obs.image, obs.t, target_in_first_frame(twin))
     ctl = GazeController(twin.head, twin.camera, obs.encoders, dt, settings)
+    tracker, track_rows = None, []
+    if task.kind == "track":
+        tracker = _make_tracker(task, obs.image, _true_corners(twin, twin.ground_truth.T_world_cam))
     rows, gt_T, est_T, times, refusals, events = [], [], [], [], [], []
     current = 0
     q_meas_prev = obs.encoders.copy()
@@ -140,6 +148,15 @@ def run_closed_loop(twin: Twin, scenario, task: Task, out: str | Path, seconds: 
         if task.kind == "saccade" and i > 1 and obs.t >= (current + 1) * task.dwell_s:
             current += 1
             set_mode(current % len(task.targets), obs.t)
+        if tracker is not None:
+            res = tracker.track(obs.image) if i else None
+            if res is not None and not res.lost:
+                ctl.track(res.centre)
+            elif res is not None:
+                ctl.hold()                # a lost target is said (tracking.csv), not chased
+            true_uv = _true_corners(twin, gt.T_world_cam)
+            poly = res.polygon if res is not None else np.full((4, 2), np.nan)
+            track_rows.append([obs.t, *poly.ravel(), int(res.lost) if res is not None else 0, *true_uv.ravel()])
         cmd = ctl.step(obs.t, obs.imu, obs.encoders, T_world_cam=T_est, v_world=v_est)
         if cmd.landed:
             events.append({"t": obs.t, "event": "landed", "target": current % len(task.targets)})
@@ -202,12 +219,71 @@ def run_closed_loop(twin: Twin, scenario, task: Task, out: str | Path, seconds: 
                        pitch_rms_dev_deg=float(np.sqrt(np.mean(dev[:, 0] ** 2))),
                        roll_rms_dev_deg=float(np.sqrt(np.mean(dev[:, 1] ** 2))))
         summary["pitch_roll_deg"] = pr.tolist()
+    if tracker is not None:
+        summary.update(_track_summary(out, np.array(track_rows, float), twin.camera, times))
     (out / "task.toml").write_text(_task_toml(task, twin.scenario.name, seed))
     _plots(out, times, summary, cmd_rate, meas_rate, settings)
     (out / "report.md").write_text(_report(summary))
     (out / "summary.json").write_text(json.dumps({k: v for k, v in summary.items()
                                                    if k not in ("fixation_error_deg", "pitch_roll_deg")}, indent=1))
     return summary
+
+
+def _make_tracker(task: Task, image: np.ndarray, rect_uv: np.ndarray):
+    """The 2D tracker of a track task, learnt on the first image."""
+    from ..vision2d.hyperplane import HyperplaneTracker
+    from ..vision2d.meanshift import MeanShiftTracker
+
+    if task.region is not None:
+        region = task.region
+    else:
+        lo, hi = rect_uv.min(axis=0), rect_uv.max(axis=0)
+        region = rect_uv if task.method == "hyperplane" else (*lo, *(hi - lo))
+    return HyperplaneTracker(image, region) if task.method == "hyperplane" else MeanShiftTracker(image, region)
+
+
+#: The default tracked region: the known rectangle grown about its centre, so that it takes in
+#: the card's edge and the bench's texture around it (the same plane): a plain black rectangle
+#: alone gives a planar tracker little to lock on to.
+TRACK_REGION_SCALE = 1.8
+
+
+def _true_corners(twin: Twin, T_world_cam: np.ndarray) -> np.ndarray:
+    """(4, 2) where the default tracked region's corners are in the image: the first frame's
+    region (the user's selection) and, later, the evaluation's truth."""
+    from kinematics.camera import project
+
+    xyz = twin.scenario.bench.target_corners()
+    c = xyz.mean(axis=0)
+    xyz = c + TRACK_REGION_SCALE * (xyz - c)
+    return project(twin.camera, (xyz - T_world_cam[:3, 3]) @ T_world_cam[:3, :3])
+
+
+def _diagonals_meet(quads: np.ndarray) -> np.ndarray:
+    """(n, 2) where the diagonals of each quadrilateral (n, 4, 2) cross: the image of the centre
+    of the planar rectangle it shows (a projective invariant, unlike the corners' mean)."""
+    h = np.concatenate([quads, np.ones(quads.shape[:2] + (1,))], axis=2)
+    p = np.cross(np.cross(h[:, 0], h[:, 2]), np.cross(h[:, 1], h[:, 3]))
+    return p[:, :2] / p[:, 2:3]
+
+
+def _track_summary(out: Path, rows: np.ndarray, camera, times) -> dict:
+    """tracking.csv, and the servo's error: the rectangle's true centre against the image
+    centre after the first second, and the tracker's corner error against the true corners."""
+    with open(out / "tracking.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", *[f"{a}{k}" for k in range(4) for a in ("x", "y")], "lost",
+                    *[f"true_{a}{k}" for k in range(4) for a in ("x", "y")]])
+        w.writerows(rows.tolist())
+    poly, lost, truth = rows[:, 1:9].reshape(-1, 4, 2), rows[:, 9] > 0, rows[:, 10:18].reshape(-1, 4, 2)
+    after = times >= times[0] + 1.0
+    centre_err = np.linalg.norm(_diagonals_meet(truth) - [camera.cx, camera.cy], axis=1)
+    ok = after & ~lost & np.isfinite(poly).all(axis=(1, 2))
+    corner_err = np.linalg.norm(poly - truth, axis=2)
+    return {"track_lost_frames": int(lost.sum()),
+            "servo_centre_rms_px": float(np.sqrt(np.mean(centre_err[after] ** 2))) if after.any() else float("nan"),
+            "servo_centre_max_px": float(centre_err[after].max()) if after.any() else float("nan"),
+            "tracker_corner_rms_px": float(np.sqrt(np.mean(corner_err[ok] ** 2))) if ok.any() else float("nan")}
 
 
 def _landings(times, err_deg, events, task: Task) -> list[dict]:
@@ -230,7 +306,7 @@ def _landings(times, err_deg, events, task: Task) -> list[dict]:
 
 
 def _task_toml(task: Task, scenario: str, seed: int) -> str:
-    lines = [f'# the closed-loop task, world frame (m)', f'scenario = "{scenario}"', f"seed = {seed}",
+    lines = ['# the closed-loop task, world frame (m)', f'scenario = "{scenario}"', f"seed = {seed}",
              f'task = "{task.kind}"', f"dwell_s = {task.dwell_s}",
              "targets = [" + ", ".join("[" + ", ".join(f"{v:.6f}" for v in p) + "]" for p in task.targets) + "]"]
     return "\n".join(lines) + "\n"
@@ -288,6 +364,11 @@ def _report(s: dict) -> str:
         lines.append(f"Camera attitude against its start (true): pitch max {s['pitch_max_dev_deg']:.2f} deg "
                      f"(RMS {s['pitch_rms_dev_deg']:.2f}), roll max {s['roll_max_dev_deg']:.2f} deg "
                      f"(RMS {s['roll_rms_dev_deg']:.2f}).")
+    if "servo_centre_rms_px" in s:
+        lines.append(f"Tracking and servoing (after the first second): the target's true centre is "
+                     f"{s['servo_centre_rms_px']:.1f} px RMS (max {s['servo_centre_max_px']:.1f}) from the image centre; "
+                     f"the tracker's corners are {s['tracker_corner_rms_px']:.2f} px RMS from the truth; "
+                     f"{s['track_lost_frames']} frames lost (tracking.csv).")
     if "ate_rmse_m" in s:
         lines.append(f"SLAM during the run: ATE RMSE {100 * s['ate_rmse_m']:.2f} cm (max {100 * s['ate_max_m']:.2f}), "
                      f"{s['lost_frames']} frames lost.")

@@ -66,7 +66,7 @@ class Scenario:
 
 
 #: What the closed loop's controller may be asked to do (runtime.twin.loop.Task).
-TASKS = ("fixate", "saccade", "stabilise", "body")
+TASKS = ("fixate", "saccade", "stabilise", "body", "track")
 
 SCENARIOS: dict[str, Scenario] = {
     "workbench-static": Scenario("workbench-static", "stand", 12.0, (0.0, 0.05), 0.0, "sweep-bench"),

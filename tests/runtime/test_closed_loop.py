@@ -65,3 +65,19 @@ def test_sim_run_refuses_a_saccade_without_two_targets(tmp_path, capsys):
                  "--out", str(tmp_path)])
     assert code == 2
     assert "at least two targets" in capsys.readouterr().err
+
+
+def test_tracking_servo_keeps_the_tracked_region_centred(twin, tmp_path):
+    s = run_closed_loop(twin, "workbench-static", Task("track"), tmp_path, seconds=3.0, progress=False)
+    with open(tmp_path / "tracking.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    lost = [int(float(r["lost"])) for r in rows]
+    assert sum(lost) == 0
+    # Against the truth written beside each polygon: the tracker's corners, and the region's
+    # true centre (where the diagonals cross) against the image centre once the loop settles.
+    poly = np.array([[float(r[f"{a}{k}"]) for k in range(4) for a in "xy"] for r in rows[1:]]).reshape(-1, 4, 2)
+    true = np.array([[float(r[f"true_{a}{k}"]) for k in range(4) for a in "xy"] for r in rows[1:]]).reshape(-1, 4, 2)
+    assert np.sqrt(np.mean(np.sum((poly - true) ** 2, axis=2))) < 1.0
+    assert s["servo_centre_rms_px"] < 5.0
+    # The head moved to centre it (it starts off-centre), within the motion limit.
+    assert 1.0 < s["peak_cmd_rate_deg_s"] <= 30.0 + 1e-9

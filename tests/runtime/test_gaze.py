@@ -204,3 +204,24 @@ def test_track_mode_centres_an_image_point():
     # Track turns the optic axis onto the point's ray; the centre's offset from the axes moves
     # the point a little as the head turns, and the loop closes that on later images.
     np.testing.assert_allclose(uv, [CAM.cx, CAM.cy], atol=0.5)
+
+
+def test_slaving_to_a_tracked_head_follows_the_mapped_angles_within_the_limits():
+    from runtime.vision2d.headtrack import head_to_joint_targets
+
+    q0 = np.zeros(3)
+    limit = math.radians(30)
+    ctl = GazeController(HEAD, CAM, q0, DT, ControllerSettings(motion_limit_rad_s=limit))
+    run_static(ctl, np.eye(4), q0, 1)
+    q, prev = ctl.filter.q.copy(), ctl.filter.q.copy()
+    # A person turning their head left and up over 2 s, then holding.
+    t = np.arange(90) * DT
+    ypr = np.column_stack([np.radians(40) * np.minimum(t / 2, 1), np.radians(15) * np.minimum(t / 2, 1), 0 * t])
+    for k in range(len(t)):
+        ctl.slave(head_to_joint_targets(ypr[k], limits=HEAD))
+        q = run_static(ctl, np.eye(4), q, 1)[0].q
+        assert np.all(np.abs(q - prev) <= limit * DT + 1e-12)
+        prev = q
+    np.testing.assert_allclose(q, head_to_joint_targets(ypr[-1], limits=HEAD), atol=1e-3)
+    with pytest.raises(GazeRefused, match="outside the joint ranges"):
+        ctl.slave([0.0, 3.0, 0.0])
