@@ -24,7 +24,7 @@ from runtime.vision2d.stabilise import (StabiliseSettings, bearings, detect_corn
 from wvr.cli import make_twin  # noqa: E402
 
 SECONDS = 6.0
-SCENARIOS = ("sit-down", "workbench-static")
+SCENARIOS = ("sit-down", "workbench-static", "sit-down-head-still")
 
 
 def rms(a):
@@ -79,10 +79,12 @@ def main():
             print(f"{name}: recorded {SECONDS:g} s in {time.perf_counter() - t0:.0f} s", flush=True)
             print(f"  {'mode':<22} {'rot RMS deg':>11} {'max deg':>8} {'raw px':>7} {'fovea px':>8} "
                   f"{'ratio':>6} {'ratio*':>6} {'clamped':>7} {'flagged':>7} {'fps':>6}")
-            for label, use_imu, s in (("vision", False, settings), ("vision + IMU", True, settings),
-                                      ("vision, derotating", False, StabiliseSettings(derotate=True))):
-                st = stabilise_sequence(seq_dir, tmp / f"{name}-{label}", use_imu=use_imu, progress=False,
-                                        settings=s)
+            for label, use_imu, s, fovea in (("vision", False, settings, (320, 240)),
+                                             ("vision + IMU", True, settings, (320, 240)),
+                                             ("vision, derotating", False, StabiliseSettings(derotate=True), (320, 240)),
+                                             ("vision + IMU, 160x120", True, settings, (160, 120))):
+                st = stabilise_sequence(seq_dir, tmp / f"{name}-{label}", fovea=fovea, use_imu=use_imu,
+                                        progress=False, settings=s)
                 print(f"  {label:<22} {st['rotation_rms_error_deg']:>11.4f} {st['rotation_max_error_deg']:>8.4f} "
                       f"{st['raw_motion_px']:>7.3f} {st['fovea_motion_px']:>8.3f} {st['motion_ratio']:>6.2f} "
                       f"{st['motion_ratio_unclamped']:>6.2f} {st['clamped']:>7d} {st['flagged']:>7d} "

@@ -53,6 +53,6 @@ def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, 
                 w.add_imu(row[0], row[1:4], row[4:7])
             if i == n_frames - 1:
                 break
-            desired = twin.scripted_command(obs.t + dt, script.q)
+            desired = script.q if twin.scenario.gaze == "still" else twin.scripted_command(obs.t + dt, script.q)
             obs = twin.step(script.step(desired, dt))
     return out

@@ -23,7 +23,7 @@ class Scenario:
     seconds: float
     body_xy: tuple[float, float]
     body_yaw: float
-    gaze: str                     # "sweep-bench", "follow-bench" or "hold-target"
+    gaze: str                     # "sweep-bench", "follow-bench", "hold-target" or "still"
     walk_speed_m_s: float = 0.0
     bench: Workbench = field(default_factory=Workbench)
     light: float = 1.0
@@ -46,10 +46,11 @@ class Scenario:
         return (1 - a) * self.light + a * self.dim_to
 
     def look_at(self, t: float, wearer_xy: np.ndarray) -> np.ndarray:
-        """World point the scripted head fixates at time t (recordings only)."""
+        """World point the scripted head fixates at time t (recordings only). "still" fixates
+        the target at t = 0 only; the recorder then holds the joints (the head rides the body)."""
         b = self.bench
         target = np.r_[b.target_xy, b.height]
-        if self.gaze == "hold-target":
+        if self.gaze in ("hold-target", "still"):
             return target
         if self.gaze == "sweep-bench":
             return target + np.array([0.35 * math.sin(2 * math.pi * t / 9.0), -0.12 * math.sin(2 * math.pi * t / 6.0), 0.0])
@@ -74,6 +75,9 @@ SCENARIOS: dict[str, Scenario] = {
     "walk": Scenario("walk", "walk", 12.0, (-1.6, 0.05), math.pi / 2, "follow-bench", walk_speed_m_s=0.27,
                      bench=Workbench(centre_xy=(0.0, -0.75), size=(3.6, 0.7), target_xy=(-1.35, -0.6))),
     "sit-down": Scenario("sit-down", "sit-down", 6.0, (0.0, 0.15), 0.0, "hold-target", stool=True),
+    # Sitting down with the head held still on the body: the camera turns with the torso, a
+    # rotation-dominated sequence for stabilisation (the scripted sit-down's head cancels it).
+    "sit-down-head-still": Scenario("sit-down-head-still", "sit-down", 6.0, (0.0, 0.15), 0.0, "still", stool=True),
     # The same walk towards a target on the bench 1.8 m ahead, which the head can fixate for
     # the whole 6 s (the gaze task of the closed loop; walk's own target falls out of the
     # head's reach within a second as the wearer walks away from it).

@@ -188,3 +188,13 @@ def test_recorded_depth_is_the_true_distance_along_the_optic_axis(tmp_path):
     m = map_errors(seq, tmp_path / "map.csv")
     assert list(m.ids) == [0, 1]
     assert m.errors_m[0] < 2e-3 and abs(m.errors_m[1] - 0.05) < 3e-3, m.errors_m
+
+
+def test_a_still_head_rides_the_body(twin, tmp_path):
+    seq = open_sequence(record(twin, "sit-down-head-still", tmp_path / "s", seconds=1.0, seed=0, progress=False))
+    q = seq.joints.q
+    # The joints hold: only the servos' sag under the head's weight as the body tilts (~0.15 deg).
+    assert np.ptp(q, axis=0).max() < 0.01
+    R = seq.groundtruth.R_world_cam()
+    # ... so the camera turns with the torso as the wearer starts to sit.
+    assert np.degrees(np.arccos(np.clip((np.trace(R[0].T @ R[-1]) - 1) / 2, -1, 1))) > 1.0
