@@ -28,6 +28,8 @@ from .wearer import Wearer
 
 HEAD_PREFIX = "head/"
 WEARER_PREFIX = "wearer/"
+CARD_BODY = "object/card"
+OCCLUDER_BODY = "object/occluder"
 TIMESTEP = 0.001
 
 
@@ -118,7 +120,7 @@ def _quat(R: np.ndarray) -> str:
 
 def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wearer, mount: Mount,
                 bench: Workbench = Workbench(), seed: int = 0, n_objects: int | None = None,
-                stool: tuple[float, float, float] | None = None) -> tuple[str, dict]:
+                stool: tuple[float, float, float] | None = None, moving_card: bool = False) -> tuple[str, dict]:
     """(MJCF string, assets dict of PNG bytes) of the whole scene.
 
     ``camera_render`` is the pinhole camera MuJoCo renders (see :mod:`runtime.twin.render`).
@@ -214,6 +216,22 @@ def build_scene(head: HeadGeometry, camera_render: CameraIntrinsics, wearer: Wea
                   size=_fmt([bench.rect_size[0] / 2, bench.rect_size[1] / 2, _RECT_T / 2]),
                   pos=_fmt([tx, ty, bench.height + _CARD_T + _RECT_T / 2]), quat=q, material="black",
                   contype="0", conaffinity="0")
+    if moving_card:
+        # Mocap bodies the twin moves every frame (Scenario.T_world_card, T_world_occluder). Its
+        # texture comes from its own generator, so the rest of the scene stays as it was.
+        from .scenarios import MOVING_CARD_SIZE, MOVING_CARD_T, OCCLUDER_T
+
+        assets["card.png"] = _texture(np.random.default_rng(seed + 7919), 256)
+        ET.SubElement(asset, "texture", name="card", type="2d", file="card.png")
+        ET.SubElement(asset, "material", name="card", texture="card", specular="0.05", texrepeat="1 1")
+        body = ET.SubElement(world, "body", name=CARD_BODY, mocap="true")
+        ET.SubElement(body, "geom", name="moving_card", type="box",
+                      size=_fmt([MOVING_CARD_SIZE[0] / 2, MOVING_CARD_SIZE[1] / 2, MOVING_CARD_T / 2]),
+                      material="card", contype="0", conaffinity="0", mass="0")
+        body = ET.SubElement(world, "body", name=OCCLUDER_BODY, mocap="true")
+        ET.SubElement(body, "geom", name="occluder", type="box",
+                      size=_fmt([MOVING_CARD_SIZE[0] / 8, 0.6 * MOVING_CARD_SIZE[1], OCCLUDER_T / 2]),
+                      material="skin", contype="0", conaffinity="0", mass="0")
     if stool is not None:   # (x, y, seat height): something to sit on
         x, y, h = stool
         ET.SubElement(world, "geom", name="stool", type="box", size=_fmt([0.2, 0.2, h / 2]), pos=_fmt([x, y, h / 2]),

@@ -35,7 +35,7 @@ from kinematics.mjcf import R_OPT_MJCAM
 from .mount import Mount
 from .render import ImageFormation, image_formation
 from .scenarios import Scenario, get_scenario
-from .scene import HEAD_PREFIX, TIMESTEP, WEARER_PREFIX, build_scene
+from .scene import CARD_BODY, HEAD_PREFIX, OCCLUDER_BODY, TIMESTEP, WEARER_PREFIX, build_scene
 from .wearer import Wearer
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -133,7 +133,7 @@ class Twin:
             back = np.array([-s, c]) * (thigh + 0.05)       # the body's +y (behind it) in the world
             stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
         xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
-                                  stool=stool)
+                                  stool=stool, moving_card=sc.moving_card)
         self._close_renderer()
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
@@ -164,6 +164,10 @@ class Twin:
         self.data.ctrl[:] = self.filter.q
         self._cmd_prev = self.filter.q.copy()
         self._command = self.filter.q.copy()
+        self._objects = []
+        if sc.moving_card:
+            self._objects = [(self.model.body_mocapid[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)], pose)
+                             for name, pose in ((CARD_BODY, sc.T_world_card), (OCCLUDER_BODY, sc.T_world_occluder))]
         self._set_wearer(0.0, all_segments=True)
         mujoco.mj_forward(self.model, self.data)
         self._record_cam(0)
@@ -205,6 +209,12 @@ class Twin:
 
     def _set_wearer(self, t: float, all_segments: bool, index: int | None = None) -> None:
         if all_segments:
+            # Scene objects moved by the scenario (they only need to be where they are when a
+            # frame is rendered).
+            for mocap_id, pose in self._objects:
+                T = pose(t)
+                self.data.mocap_pos[mocap_id] = T[:3, 3]
+                self.data.mocap_quat[mocap_id] = Rotation.from_matrix(T[:3, :3]).as_quat()[[3, 0, 1, 2]]
             G = self.wearer.poses(t)
             segs = np.arange(len(self.wearer.segments))
             pos = G[:, :3, 3]

@@ -333,3 +333,37 @@ def test_runner_rejects_bad_input(tmp_path):
         track_sequence(tmp_path / "seq", tmp_path / "o", init=(0, 0, 0, 10), progress=False)
     with pytest.raises(ValueError, match="method"):
         track_sequence(tmp_path / "seq", tmp_path / "o", init=(10, 10, 50, 50), method="kalman", progress=False)
+
+
+@pytest.mark.slow
+def test_planar_tracker_on_the_twin_card_a_quarter_occluded(tmp_path):
+    """The twin's hand-held card, the camera following it: corners against the card's true
+    corners projected by the true camera poses, with the occluder over a quarter from 1.5 s."""
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from kinematics.camera import project
+    from runtime.sequence import open_sequence
+    from runtime.twin.recorder import record
+    from runtime.twin.scenarios import get_scenario
+    from wvr.cli import make_twin
+
+    sc = get_scenario("workbench-card")
+    twin = make_twin()
+    try:
+        seq = open_sequence(record(twin, sc, tmp_path / "card", seconds=2.5, seed=0, progress=False))
+    finally:
+        twin.close()
+    T = seq.groundtruth.interpolate(seq.timestamps).T_world_cam()
+    frames = [f.image for f in seq.frames()]
+    truth = [project(seq.camera, (sc.card_corners(t) - T[i, :3, 3]) @ T[i, :3, :3]) for i, t in enumerate(seq.timestamps)]
+    tr = HyperplaneTracker(frames[0], truth[0])
+    err = []
+    for img, true in zip(frames[1:], truth[1:]):
+        r = tr.track(img)
+        assert not r.lost
+        err.append(np.sqrt(np.mean(np.sum((r.polygon - true) ** 2, axis=1))))
+    t = np.asarray(seq.timestamps[1:])
+    occluded = t >= 1.5                       # the occluder is fully over the card from 1.5 s
+    assert np.sqrt(np.mean(np.square(err)[occluded])) < 2.0
+    assert np.sqrt(np.mean(np.square(err)[~occluded])) < 1.0
