@@ -1,7 +1,6 @@
 """Gaze IK: round trips through FK, the image-vertical rule, analytic cases, refusals."""
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """head.toml: round trip, the reference head, and one-line errors for bad files."""
 
 import math
-import tomllib
 
 import numpy as np
 import pytest

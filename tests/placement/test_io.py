@@ -203,7 +203,6 @@ def _skeleton(body, style="cmu"):
         add("Neck", "Spine1", J["head"])
         add("Neck1", "Neck", J["head"] + 0.03 * H * up)
         add("Head", "Neck1", J["head"] + 0.06 * H * up)
-        chest = "Spine1"
     else:
         add("Spine", "Hips", J["abdomen"])
         add("Spine1", "Spine", (J["abdomen"] + J["chest"]) / 2)

@@ -5,9 +5,8 @@ import math
 import numpy as np
 import pytest
 import trimesh
-from scipy.spatial.transform import Rotation
 
-from placement.body import SEGMENT_INDEX, SEGMENTS, Body, BodyError, Motion, Pose, make_body
+from placement.body import SEGMENT_INDEX, SEGMENTS, BodyError, Motion, Pose, make_body
 from placement.motions import default_motions, default_poses
 from placement.rays import Occluder
 from placement.scores import fov_fraction, handling_space, motion_scores

@@ -30,13 +30,11 @@ from runtime.slam.motion import (
     f_and_dfdx,
     f_and_dfdx_dfdn,
     noise_covariance,
-    normalise_quaternion,
     normalise_quaternion_jacobian,
     predict,
     process_noise,
 )
 from runtime.slam.state import (
-    CAMERA_DIM,
     Q_SLICE,
     R_SLICE,
     V_SLICE,

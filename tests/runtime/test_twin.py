@@ -1,16 +1,13 @@
 """The MuJoCo twin: target corners, ground truth composition, servo limits, IMU, determinism."""
 
-import dataclasses
 import filecmp
-import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from kinematics import forward_kinematics, reference_head
-from kinematics.camera import CameraIntrinsics, default_camera, project
+from kinematics.camera import CameraIntrinsics, default_camera
 from runtime.sequence import open_sequence
 from runtime.twin.mount import default_shoulder_mount
 from runtime.twin.recorder import record, target_in_first_frame
