@@ -319,8 +319,20 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, when: str = "") -> None:
+    """The options every twin run takes (record, closed loop, tracking servo): scenario,
+    duration, seed, and the head, mount and camera files. ``when`` prefixes their help."""
+    p.add_argument("--scenario", required=required, choices=sorted(scenarios), help=f"{when}the twin scenario")
+    p.add_argument("--seconds", type=float, help=f"{when}duration (default: the scenario's)")
+    p.add_argument("--seed", type=int, default=0, help=f"{when}scene seed (textures, object layout, sensor noise)")
+    p.add_argument("--head", help=f"{when}head.toml (default: the reference head)")
+    p.add_argument("--mount", help=f"{when}mount.toml from wvr placement map (default: on the right shoulder)")
+    p.add_argument("--camera", help=f"{when}camera.toml (default: 640x480, f = 514.7 px)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from runtime.twin.scenarios import SCENARIOS, TASKS
+    from runtime.vision2d.track import METHODS
 
     p = argparse.ArgumentParser(
         prog="wvr",
@@ -387,37 +399,27 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="the MuJoCo twin: record sequences of the wearer and the head")
     ssub = sim.add_subparsers(dest="sim_command", metavar="SUBCOMMAND", required=True)
     rec = ssub.add_parser("record", help="record a scenario as a sequence (TUM layout, camera.toml, target.toml)")
-    rec.add_argument("--scenario", required=True, choices=sorted(SCENARIOS))
     rec.add_argument("--out", required=True, help="output sequence folder")
-    rec.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
-    rec.add_argument("--seed", type=int, default=0, help="scene seed (textures, object layout, sensor noise)")
-    rec.add_argument("--head", help="head.toml (default: chosen_head.toml if given, else the reference head)")
-    rec.add_argument("--mount", help="mount.toml from wvr placement map (default: on the right shoulder)")
-    rec.add_argument("--camera", help="camera.toml (default: 640x480, f = 514.7 px)")
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.add_argument("--depth", action="store_true",
                      help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
+    _twin_options(rec, SCENARIOS)
     rec.set_defaults(func=cmd_sim_record)
 
     run = ssub.add_parser("run", help="closed loop: twin, SLAM and gaze controller (fixate, saccade, Path A, Path B)")
-    run.add_argument("--scenario", required=True, choices=sorted(SCENARIOS))
     run.add_argument("--task", required=True, choices=list(TASKS))
     run.add_argument("--target", action="append", type=_vector, metavar="X,Y,Z",
                      help="world point to fixate or saccade to, m (repeatable; default for fixate: the scenario's "
                           "known rectangle's centre)")
     run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     run.add_argument("--dwell", type=float, default=2.0, help="seconds on each saccade target (default 2)")
-    run.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
     run.add_argument("--limit", type=float, default=30.0,
                      help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
     run.add_argument("--init", type=_vector, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
-    run.add_argument("--method", choices=["hyperplane", "meanshift"], default="hyperplane", help="track: the 2D tracker")
-    run.add_argument("--seed", type=int, default=0, help="scene seed")
+    run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
     run.add_argument("--out", required=True, help="output directory")
-    run.add_argument("--head", help="head.toml (default: the reference head)")
-    run.add_argument("--mount", help="mount.toml (default: on the right shoulder)")
-    run.add_argument("--camera", help="camera.toml (default: 640x480)")
+    _twin_options(run, SCENARIOS)
     run.set_defaults(func=cmd_sim_run)
 
     stab = sub.add_parser("stabilise", help="visual (and inertial) stabilisation with a software fovea")
@@ -430,16 +432,11 @@ def build_parser() -> argparse.ArgumentParser:
     trk = sub.add_parser("track", help="2D object tracking (hyperplane planar tracker or mean shift); --servo in the twin")
     trk.add_argument("seq", nargs="?", help="sequence folder (not with --servo)")
     trk.add_argument("--init", type=_vector, metavar="X,Y,W,H", help="the target's box in the first frame, pixels")
-    trk.add_argument("--method", choices=["hyperplane", "meanshift"], default="hyperplane")
+    trk.add_argument("--method", choices=METHODS, default="hyperplane", help="the 2D tracker")
     trk.add_argument("--out", required=True, help="output directory")
     trk.add_argument("--servo", action="store_true",
                      help="closed loop in the twin: the gaze controller keeps the target centred")
-    trk.add_argument("--scenario", choices=sorted(SCENARIOS), help="with --servo: the twin scenario")
-    trk.add_argument("--seconds", type=float, help="with --servo: duration (default: the scenario's)")
-    trk.add_argument("--seed", type=int, default=0, help="with --servo: scene seed")
-    trk.add_argument("--head", help="with --servo: head.toml")
-    trk.add_argument("--mount", help="with --servo: mount.toml")
-    trk.add_argument("--camera", help="with --servo: camera.toml")
+    _twin_options(trk, SCENARIOS, required=False, when="with --servo: ")
     trk.set_defaults(func=cmd_track)
 
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")

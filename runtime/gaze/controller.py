@@ -121,6 +121,7 @@ class GazeController:
         self.v_mount = np.zeros(3)
         self.w_mount = np.zeros(3)    # world frame, rad/s
         self.q_enc = np.asarray(q0, float).copy()
+        self.pose_enc = forward_kinematics(head, self.q_enc)   # the head's FK at the encoder angles
         self.t = 0.0
         self._last_prompt_t = -np.inf
         self.prompts: list[tuple[float, Prompt]] = []
@@ -194,12 +195,12 @@ class GazeController:
         if self.T_world_mount is not None:
             return self.T_world_mount[:3, :3].T @ UP
         if self.attitude.R is not None:
-            R_mount_cam = forward_kinematics(self.head, self.q_enc).R_mount_cam
+            R_mount_cam = self.pose_enc.R_mount_cam
             return R_mount_cam @ self.attitude.R.T @ UP
         return UP
 
     def _estimate_mount(self, T_world_cam, v_world) -> None:
-        pose = forward_kinematics(self.head, self.q_enc)
+        pose = self.pose_enc
         if T_world_cam is not None:
             T_mount_cam = pose.T_mount_cam
             T = np.asarray(T_world_cam, float) @ np.linalg.inv(T_mount_cam)
@@ -253,7 +254,7 @@ class GazeController:
             return None, float("nan"), True, None
         if self.mode in ("fixate", "saccade"):
             p = self.target
-            T_now = self.T_world_mount @ forward_kinematics(self.head, self.q_enc).T_mount_cam
+            T_now = self.T_world_mount @ self.pose_enc.T_mount_cam
             d = p - T_now[:3, 3]
             err = math.acos(float(np.clip(T_now[:3, 2] @ d / np.linalg.norm(d), -1.0, 1.0)))
             res = self._ik_point(p, self.predicted_mount())
@@ -264,7 +265,7 @@ class GazeController:
         if self.mode == "stabilise":
             if self.attitude.R is None:
                 return None, float("nan"), True, None
-            R_wm = self.attitude.R @ forward_kinematics(self.head, self.q_enc).R_mount_cam.T
+            R_wm = self.attitude.R @ self.pose_enc.R_mount_cam.T
             R_wm_pred = _so3_exp(self.w_mount * self.lead) @ R_wm
             R_mc_des = R_wm_pred.T @ self.target
             err = float(Rotation.from_matrix(self.target.T @ self.attitude.R).magnitude())
@@ -275,7 +276,7 @@ class GazeController:
         if self.mode in ("body", "slave"):
             return self.target, float(np.linalg.norm(self.target - q)), True, None
         if self.mode == "track":
-            pose = forward_kinematics(self.head, self.q_enc)
+            pose = self.pose_enc
             ray = unproject(self.camera, self.target[None])[0]
             ray = ray / np.linalg.norm(ray)
             err = math.acos(float(np.clip(ray[2], -1.0, 1.0)))
@@ -301,6 +302,7 @@ class GazeController:
         if enc.shape != (3,) or not np.isfinite(enc).all():
             raise ValueError(f"encoder angles must be 3 finite radians, got {np.asarray(encoders).tolist()}")
         self.q_enc = enc
+        self.pose_enc = forward_kinematics(self.head, enc)    # once per period, used by every mode
         self.attitude.update(imu)
         if T_world_cam is not None and not np.isfinite(np.asarray(T_world_cam, float)).all():
             T_world_cam = None

@@ -25,9 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .motion import apply_quaternion_jacobian, normalise_quaternion_jacobian
-from .state import (CAMERA_DIM, CAMERA_SLICE, DEFAULT_CONFIG, Q_SLICE, SlamConfig, State, check_covariance,
-                    check_mean, compiled_kernel, quat_left_kernel, quat_right_kernel, rotation_derivatives_kernel,
+from .motion import apply_camera_prediction
+from .state import (CAMERA_DIM, CAMERA_SLICE, DEFAULT_CONFIG, SlamConfig, State, compiled_kernel, quat_left_kernel, quat_right_kernel, rotation_derivatives_kernel,
                     rotation_kernel, rotvec_to_quat_jacobian_kernel)
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -131,16 +130,4 @@ def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamCo
     fs = np.array([f for _, _, f in steps]).reshape(-1, 3)
     x_v, P_vv, F_total = _propagate_kernel(state.x[CAMERA_SLICE].copy(), state.P[CAMERA_SLICE, CAMERA_SLICE].copy(),
                                            ds, omegas, fs, sa, sg)
-    x = state.x.copy()
-    x[CAMERA_SLICE] = x_v
-    P = state.P.copy()
-    rows = F_total @ P[CAMERA_SLICE, :]
-    rows[:, CAMERA_SLICE] = 0.5 * (P_vv + P_vv.T)
-    P[CAMERA_SLICE, :] = rows
-    P[:, CAMERA_SLICE] = rows.T
-    q_unit, J = normalise_quaternion_jacobian(x[Q_SLICE])
-    x[Q_SLICE] = q_unit
-    apply_quaternion_jacobian(P, J)
-    check_mean(x, "inertial predict")
-    state.P = check_covariance(P, "inertial predict", cfg)
-    state.x = x
+    apply_camera_prediction(state, x_v, F_total, P_vv, "inertial predict", cfg)

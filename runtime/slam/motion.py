@@ -173,13 +173,22 @@ def predict(state: State, dt: float, cfg: SlamConfig = DEFAULT_CONFIG) -> None:
     x_v = state.x[CAMERA_SLICE]
     x_v_new, F, G = f_and_dfdx_dfdn(x_v, dt)
     Q = G @ noise_covariance(dt, cfg) @ G.T
+    P_vv = state.P[CAMERA_SLICE, CAMERA_SLICE]
+    apply_camera_prediction(state, x_v_new, F, F @ P_vv @ F.T + Q, "predict", cfg)
 
+
+def apply_camera_prediction(state: State, x_v_new: np.ndarray, F: np.ndarray, P_vv_new: np.ndarray, where: str,
+                            cfg: SlamConfig = DEFAULT_CONFIG) -> None:
+    """Write a prediction of the camera block into the state, in place: ``x_v <- x_v_new``,
+    ``P_vv <- P_vv_new`` (symmetrised), ``P_vy <- F P_vy`` (features do not move); then ``q`` is
+    renormalised with its Jacobian and the guard runs (``where`` names the step in its errors).
+    On a numerical failure :class:`SlamNumericalError` is raised and the state is unchanged.
+    Shared by the constant-velocity and the inertial predictions."""
     x = state.x.copy()
     x[CAMERA_SLICE] = x_v_new
     P = state.P.copy()
     rows = F @ P[CAMERA_SLICE, :]             # (13, n): the camera rows of F P
-    vv = rows[:, CAMERA_SLICE] @ F.T + Q      # F P_vv F^T + Q
-    rows[:, CAMERA_SLICE] = 0.5 * (vv + vv.T)
+    rows[:, CAMERA_SLICE] = 0.5 * (P_vv_new + P_vv_new.T)
     P[CAMERA_SLICE, :] = rows
     P[:, CAMERA_SLICE] = rows.T               # P_yv F^T = (F P_vy)^T: written as the transpose,
                                               # so a symmetric P stays exactly symmetric
@@ -188,6 +197,6 @@ def predict(state: State, dt: float, cfg: SlamConfig = DEFAULT_CONFIG) -> None:
     x[Q_SLICE] = q_unit
     apply_quaternion_jacobian(P, J)
 
-    check_mean(x, "predict")
-    state.P = check_covariance(P, "predict", cfg)
+    check_mean(x, where)
+    state.P = check_covariance(P, where, cfg)
     state.x = x

@@ -32,6 +32,8 @@ from ..gaze import ControllerSettings, GazeController, GazeRefused
 from ..sequence import Trajectory, write_trajectory
 from ..slam.eval import trajectory_errors
 from ..slam.system import MonoSLAM
+from ..vision2d.track import METHODS as TRACK_METHODS
+from ..vision2d.track import make_tracker
 from .recorder import target_in_first_frame
 from .scenarios import TASKS
 from .twin import Twin
@@ -58,8 +60,8 @@ class Task:
             raise ValueError(f"task {self.kind} needs a target: give --target X,Y,Z or --targets FILE")
         if self.kind == "saccade" and len(t) < 2:
             raise ValueError("task saccade needs at least two targets (--targets FILE)")
-        if self.method not in ("hyperplane", "meanshift"):
-            raise ValueError(f"track method {self.method!r}: use 'hyperplane' or 'meanshift'")
+        if self.method not in TRACK_METHODS:
+            raise ValueError(f"track method {self.method!r}: use one of {', '.join(TRACK_METHODS)}")
         if not self.dwell_s > 0:
             raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
         object.__setattr__(self, "targets", t)
@@ -229,17 +231,14 @@ def run_closed_loop(twin: Twin, scenario, task: Task, out: str | Path, seconds: 
     return summary
 
 
-def _make_tracker(task: Task, image: np.ndarray, rect_uv: np.ndarray):
-    """The 2D tracker of a track task, learnt on the first image."""
-    from ..vision2d.hyperplane import HyperplaneTracker
-    from ..vision2d.meanshift import MeanShiftTracker
-
-    if task.region is not None:
-        region = task.region
-    else:
-        lo, hi = rect_uv.min(axis=0), rect_uv.max(axis=0)
-        region = rect_uv if task.method == "hyperplane" else (*lo, *(hi - lo))
-    return HyperplaneTracker(image, region) if task.method == "hyperplane" else MeanShiftTracker(image, region)
+def _make_tracker(task: Task, image: np.ndarray, region_uv: np.ndarray):
+    """The 2D tracker of a track task, learnt on the first image: on ``task.region``, else on the
+    default region (4, 2) (its corners for the planar tracker, their bounding box for mean shift)."""
+    region = task.region
+    if region is None:
+        lo, hi = region_uv.min(axis=0), region_uv.max(axis=0)
+        region = region_uv if task.method == "hyperplane" else (*lo, *(hi - lo))
+    return make_tracker(task.method, image, region)
 
 
 #: The default tracked region: the known rectangle grown about its centre, so that it takes in
