@@ -23,6 +23,8 @@ import numpy as np
 from kinematics import HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
 from kinematics.camera import CameraFileError, default_camera, load_camera
 
+from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composition root; re-exported)
+
 # Every package's bad-input exception derives from ValueError and carries a one-line message.
 USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError)
 
@@ -147,38 +149,6 @@ def cmd_placement_map(args) -> int:
     return 0
 
 
-def wearer_for(scenario, seconds: float):
-    """The twin's wearer for a scenario: the placement body posed by the named placement motion,
-    placed in the world where the scenario says (the twin never imports placement itself)."""
-    from placement import motions
-    from placement.body import SEGMENTS, make_body
-    from runtime.twin.wearer import Wearer
-
-    body = make_body()
-    if scenario.motion == "stand":
-        m = motions.stand(body, seconds)
-    elif scenario.motion == "walk":
-        m = motions.walk(body, seconds, speed_m_s=scenario.walk_speed_m_s, cycle_s=1.2)
-    elif scenario.motion == "sit-down":
-        m = motions.sit_down(body, seconds)
-    else:
-        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down")
-    G = scenario.T_world_body() @ body.segment_transforms(m)
-    return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
-
-
-def make_twin(head_path=None, mount_path=None, camera_path=None):
-    """A Twin with the chosen (or reference) head, the chosen (or default shoulder) mount."""
-    from kinematics import reference_head
-    from runtime.twin.mount import default_shoulder_mount, load_mount
-    from runtime.twin.twin import Twin
-
-    head = load_head(head_path) if head_path else reference_head()
-    mount = load_mount(mount_path) if mount_path else default_shoulder_mount
-    cam = load_camera(camera_path) if camera_path else default_camera()
-    return Twin(head, cam, mount, wearer_for)
-
-
 def cmd_sim_record(args) -> int:
     from dataclasses import replace
 
@@ -195,6 +165,9 @@ def cmd_sim_record(args) -> int:
         out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth)
     finally:
         twin.close()
+    from kinematics import save_head
+
+    save_head(twin.head, Path(out) / "head.toml")     # a recording carries the head it was made with
     print(f"recorded {args.scenario} into {out}")
     return 0
 
@@ -202,9 +175,10 @@ def cmd_sim_record(args) -> int:
 def cmd_sim_run(args) -> int:
     import math
 
+    from runtime.apps.closed_loop import Task, load_targets
     from runtime.gaze import ControllerSettings
-    from runtime.twin.loop import Task, load_targets, run_closed_loop
     from runtime.twin.scenarios import get_scenario
+    from wvr.assemble import run_on_twin
 
     scenario = get_scenario(args.scenario)
     targets = [np.asarray(t, float) for t in (args.target or [])]
@@ -227,11 +201,11 @@ def cmd_sim_run(args) -> int:
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     twin = make_twin(args.head, args.mount, args.camera)
     try:
-        s = run_closed_loop(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings)
+        s = run_on_twin(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings)
     finally:
         twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
-    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, report.md")
+    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, head.toml, report.md")
     return 0 if not s["refusals"] else 1
 
 
@@ -331,7 +305,8 @@ def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from runtime.twin.scenarios import SCENARIOS, TASKS
+    from runtime.apps.closed_loop import TASKS
+    from runtime.twin.scenarios import SCENARIOS
     from runtime.vision2d.track import METHODS
 
     p = argparse.ArgumentParser(

@@ -103,13 +103,11 @@ def stage_placement(out: Path, context: dict) -> str:
 
 
 def _twin(out: Path, context: dict):
-    """A twin with the head and mount the earlier stages chose (written into ``out``)."""
-    from wvr.cli import make_twin
+    """A twin with the head and mount the earlier stages chose (the objects themselves)."""
+    from wvr.assemble import make_twin
 
-    head_file = out / "head.toml"
-    save_head(context.get("head") or reference_head(), head_file)
     mount = context.get("mount")
-    return make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    return make_twin(context.get("head") or reference_head(), mount if mount and Path(mount).exists() else None)
 
 
 def stage_twin(out: Path, context: dict) -> str:
@@ -160,14 +158,15 @@ def stage_slam(out: Path, context: dict) -> str:
 def stage_gaze(out: Path, context: dict) -> str:
     """Closed loop: the chosen head fixates the target while the wearer walks towards it, the
     controller seeing only SLAM (images), the IMU and the encoders."""
-    from runtime.twin.loop import Task, run_closed_loop
+    from runtime.apps.closed_loop import Task
     from runtime.twin.scenarios import get_scenario
+    from wvr.assemble import run_on_twin
 
     sc = get_scenario("walk-ahead")
     target = sc.bench.target_corners().mean(axis=0)
     twin = _twin(out, context)
     try:
-        s = run_closed_loop(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
+        s = run_on_twin(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
     except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
         return f"The closed loop could not run with the chosen head and mount: {e}"
     finally:

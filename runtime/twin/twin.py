@@ -1,9 +1,11 @@
-"""The twin in closed loop: ``reset(scenario, seed)``, then ``step(joint command)`` per frame.
+"""The twin in closed loop, a :class:`runtime.robot.Robot`: ``configure(scenario, seed)`` (or
+``reset(scenario, seed)``), then ``step(JointCommand)`` per frame.
 
-What a controller gets (:class:`Observation`): the image, the IMU samples since the last
-frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder angles
-and the time. Ground truth (:class:`GroundTruth`) is kept apart for evaluation and recording;
-no controller is handed it.
+What a controller gets (:class:`runtime.robot.Observation`): the image, the IMU samples since
+the last frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder
+angles and the time. Ground truth (:class:`runtime.robot.Truth`, through the
+:class:`runtime.robot.TruthSource` methods ``truth()`` and ``landmarks()``) is kept apart for
+evaluation and recording; no controller is handed it.
 
 Physics: MuJoCo at 1 kHz. The wearer is kinematic (mocap bodies following the wearer's track);
 the head's three hinges are simulated, driven by position servos with the HS-50's force limit
@@ -20,7 +22,6 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from typing import Callable
 
 import cv2
@@ -32,6 +33,7 @@ from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, gaze_at_point
 from kinematics.camera import CameraIntrinsics
 from kinematics.mjcf import R_OPT_MJCAM
 
+from ..robot import JOINTS_MEASURED, ImuSamples, JointCommand, Observation, RobotInfo, Truth
 from .mount import Mount
 from .render import ImageFormation, image_formation
 from .scenarios import Scenario, get_scenario
@@ -58,30 +60,8 @@ def _egl_display_ready() -> None:
         EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
 
 
-@dataclass
-class Observation:
-    """What a controller may see after a step.
-
-    t : s. image : (H, W, 3) uint8 RGB. imu : (K, 7) rows [t, wx, wy, wz, ax, ay, az] (rad/s,
-    m/s^2, optical frame) since the previous observation. encoders : (3,) joint angles, rad.
-    """
-
-    t: float
-    image: np.ndarray
-    imu: np.ndarray
-    encoders: np.ndarray
-
-
-@dataclass
-class GroundTruth:
-    """Evaluation only. T_world_cam : (4, 4) optical frame to world. q : (3,) true joint angles.
-    T_world_mount : (4, 4) the head's mount frame. command : (3,) what the servos were sent."""
-
-    t: float
-    T_world_cam: np.ndarray
-    q: np.ndarray
-    T_world_mount: np.ndarray
-    command: np.ndarray
+#: The twin's truth record (the Robot seam's :class:`runtime.robot.Truth`).
+GroundTruth = Truth
 
 
 class Twin:
@@ -110,13 +90,33 @@ class Twin:
         self.formation: ImageFormation = image_formation(camera)
         self.model = None
         self.renderer = None
+        self._config = None          # (scenario, seed, seconds) for reset() without arguments
+
+    # ------------------------------------------------------------------ the Robot seam
+    @property
+    def info(self) -> RobotInfo:
+        return RobotInfo(head=self.head, camera=self.camera, frame_rate=self.frame_rate,
+                         speed_limit=self.head.max_speed, name="twin")
+
+    def configure(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None) -> "Twin":
+        """Choose what :meth:`reset` (without arguments, as the Robot protocol calls it) builds."""
+        self._config = (get_scenario(scenario), int(seed), seconds)
+        return self
 
     # ------------------------------------------------------------------ set-up
-    def reset(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
+    def reset(self, scenario: str | Scenario | None = None, seed: int | None = None, seconds: float | None = None,
               q0=None) -> Observation:
         """Build the scene for a scenario and seed; returns the first observation (t = 0).
+        Without a scenario, the one :meth:`configure` chose.
 
         ``q0`` : initial joint angles (default: the scripted gaze's first fixation)."""
+        if scenario is None:
+            if self._config is None:
+                raise ValueError("the twin has no scenario: call configure(scenario, seed) or reset(scenario, seed)")
+            scenario, seed0, seconds0 = self._config
+            seed = seed0 if seed is None else seed
+            seconds = seconds0 if seconds is None else seconds
+        seed = 0 if seed is None else seed
         sc = get_scenario(scenario)
         self.scenario = sc
         self.seconds = sc.seconds if seconds is None else float(seconds)
@@ -183,20 +183,32 @@ class Twin:
     def t(self) -> float:
         return self.k * TIMESTEP
 
-    def step(self, q_command) -> Observation:
-        """Send one joint command (3,) rad; advance one frame period; return the next observation."""
+    def step(self, command, profile=None) -> Observation:
+        """Send one joint command (a :class:`JointCommand`, or (3,) rad); advance one frame
+        period; return the next observation.
+
+        ``profile`` : optional (steps_per_frame, 3) servo inputs, one per physics step, instead
+        of the linear ramp to the command (the hardware-in-the-loop Maestro's ramped outputs);
+        each passes the servo filter at the physics rate."""
         if self.model is None:
             raise RuntimeError("call reset(scenario, seed) first")
+        q_command = command.q if isinstance(command, JointCommand) else command
         dt = self.steps_per_frame * TIMESTEP
-        cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
+        if profile is None:
+            cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
+            start = self._cmd_prev
+            ramp = [(1 - i / self.steps_per_frame) * start + i / self.steps_per_frame * cmd
+                    for i in range(1, self.steps_per_frame + 1)]
+        else:
+            profile = np.asarray(profile, float).reshape(self.steps_per_frame, 3)
+            ramp = [self.filter.step(p, TIMESTEP) for p in profile]
+            cmd = ramp[-1]
         self._command = cmd
-        start = self._cmd_prev
         self.set_light(self.scenario.light_at(self.t, self.seconds))
         if self.k + self.steps_per_frame >= len(self.step_times):
             raise RuntimeError(f"the scenario was prepared for {self.seconds:g} s; reset with a longer 'seconds'")
         for i in range(1, self.steps_per_frame + 1):
-            a = i / self.steps_per_frame
-            self.data.ctrl[:] = (1 - a) * start + a * cmd
+            self.data.ctrl[:] = ramp[i - 1]
             # The step integrates from the state at k with the wearer where it is at k.
             mujoco.mj_step(self.model, self.data)
             self.k += 1
@@ -259,7 +271,8 @@ class Twin:
         self.renderer.update_scene(self.data, camera=self.cam_id)
         img = self.formation.form(self.renderer.render())
         enc = self.data.qpos[self.qadr] + self.rng.normal(0, self.noise[2], 3) if self.noise[2] else self.data.qpos[self.qadr].copy()
-        return Observation(t=self.t, image=img, imu=self._imu_samples(), encoders=np.array(enc))
+        return Observation(t=self.t, image=img, imu=ImuSamples.from_rows(self._imu_samples()), q=np.array(enc),
+                           q_source=JOINTS_MEASURED)
 
     # ------------------------------------------------------------------ truth (evaluation only)
     def render_depth(self) -> np.ndarray:
@@ -274,6 +287,14 @@ class Twin:
             self.renderer.disable_depth_rendering()
         return self.formation.form(z, cv2.INTER_NEAREST)
 
+
+    def truth(self) -> Truth:
+        """The :class:`runtime.robot.TruthSource` view: this moment's truth (scoring only)."""
+        return self.ground_truth
+
+    def landmarks(self) -> dict[str, np.ndarray]:
+        """Named world points of the scene for scoring: the known rectangle's corners (4, 3)."""
+        return {"target_corners": self.scenario.bench.target_corners()}
 
     @property
     def ground_truth(self) -> GroundTruth:
