@@ -118,14 +118,17 @@ class Observation:
 class JointCommand:
     """One period's command. q : (3,) joint targets, rad. qd : (3,) the rates the controller
     planned to reach them at, rad/s (information for drivers and logs; the safety chain bounds
-    the motion itself)."""
+    the motion itself). basis_t : the time (s, the observations' clock) of the newest estimate
+    the command rests on (a SLAM pose, the IMU's attitude, a tracker's fix), for the safety
+    watchdog; None when the command needs none."""
 
     q: np.ndarray
     qd: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    basis_t: float | None = None
 
     def __post_init__(self):
-        object.__setattr__(self, "q", np.asarray(self.q, float).reshape(3))
-        object.__setattr__(self, "qd", np.asarray(self.qd, float).reshape(3))
+        object.__setattr__(self, "q", np.asarray(self.q, float).reshape(3).copy())
+        object.__setattr__(self, "qd", np.asarray(self.qd, float).reshape(3).copy())
 
 
 @dataclass(frozen=True)
@@ -169,6 +172,11 @@ class Robot(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+class SessionEnded(Exception):
+    """Raised by a robot's step when its session ends of itself (a replayed or simulated camera
+    ran out of frames): the loop finishes normally."""
 
 
 @dataclass(frozen=True)

@@ -95,3 +95,12 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
 
     save_head(twin.head, Path(out) / "head.toml")
     return s
+
+
+def make_rig(rig):
+    """A HardwareRig from a rig.toml path (or a loaded RigConfig): opens the Maestro, the camera
+    and the IMU; a missing or busy port is a one-line error."""
+    from runtime.drivers.rig import HardwareRig, RigConfig, load_rig
+
+    cfg = rig if isinstance(rig, RigConfig) else load_rig(rig)
+    return HardwareRig(cfg)

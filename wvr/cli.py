@@ -20,13 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from kinematics import HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
+from kinematics import JOINT_NAMES, HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
 from kinematics.camera import CameraFileError, default_camera, load_camera
 
 from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composition root; re-exported)
 
 # Every package's bad-input exception derives from ValueError and carries a one-line message.
-USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError)
+from runtime.drivers import DriverError  # noqa: E402
+
+USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError)
 
 
 def _vector(text: str) -> np.ndarray:
@@ -285,6 +287,177 @@ def cmd_eval(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ the hardware rig
+
+def _degrees3(text: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise ValueError(f"{text!r} is not E,P,C (three comma-separated angles, degrees)") from None
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"{text!r} must be three finite angles E,P,C in degrees")
+    return v
+
+
+def cmd_head(args) -> int:
+    """Bring-up moves at a slow, stated rate; nothing beyond the head's range is ever sent."""
+    import math
+
+    from runtime.drivers.maestro import Maestro
+    from runtime.drivers.rig import ServoBoard, load_rig
+    from runtime.drivers.safety import EStop
+
+    cfg = load_rig(args.rig)
+    estop = EStop(cfg.estop_file)
+    if args.action == "stop":
+        estop.trip("stopped from the command line (wvr head stop)")
+        print(f"emergency stop latched ({cfg.estop_file}); every run holds until wvr head --rig {args.rig} reset")
+        return 0
+    if args.action == "reset":
+        estop.reset()
+        print("emergency stop cleared")
+        return 0
+    head = cfg.head
+    if args.action == "goto":
+        if args.angles is None:
+            raise ValueError("goto needs the angles: wvr head --rig rig.toml goto E,P,C (degrees)")
+        goal = np.radians(_degrees3(args.angles))
+        bad = (goal < head.lower - 1e-12) | (goal > head.upper + 1e-12)
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise ValueError(f"{JOINT_NAMES[j]} {math.degrees(goal[j]):.1f} deg is beyond the head's range "
+                             f"{math.degrees(head.lower[j]):.1f}..{math.degrees(head.upper[j]):.1f} deg; nothing was sent")
+        poses = [goal]
+    elif args.action == "home":
+        poses = [cfg.home]
+    else:                                       # sweep: each joint through its range, and back
+        poses = []
+        for j in range(3):
+            for a in (head.lower[j], head.upper[j], cfg.home[j]):
+                q = cfg.home.copy()
+                q[j] = a
+                poses.append(q)
+    if estop.tripped:
+        raise DriverError(f"the emergency stop is latched ({estop.reason}); clear it with wvr head --rig {args.rig} reset")
+    rate = math.radians(args.rate)
+    if not 0 < rate <= float(np.min(cfg.speed_limit_rad_s)):
+        raise ValueError(f"--rate {args.rate:g} deg/s must be positive and at most the board's "
+                         f"{math.degrees(float(np.min(cfg.speed_limit_rad_s))):.0f} deg/s")
+    board = ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device))
+    try:
+        board.start()
+        print(f"moving at {args.rate:g} deg/s (the board's speed limit for the move)")
+        for q in poses:
+            reached = board.move_slowly(q, rate, timeout_s=args.timeout)
+            print("at " + ", ".join(f"{n} {math.degrees(v):.1f}" for n, v in zip(JOINT_NAMES, reached)) + " deg")
+        board.maestro.check_errors()
+    finally:
+        board.maestro.close()
+    return 0
+
+
+def cmd_run(args) -> int:
+    import math
+
+    from runtime.apps.closed_loop import Task, load_targets, run_closed_loop
+    from runtime.apps.session import SessionRecorder
+    from runtime.drivers.rig import load_rig
+    from runtime.gaze import ControllerSettings
+    from runtime.sequence import load_target
+    from wvr.assemble import make_rig
+
+    cfg = load_rig(args.rig)
+    out = Path(args.out)
+    if (out / "rgb.txt").exists():
+        raise ValueError(f"{out}: already holds a recording (rgb.txt); give a new --out folder")
+    start_path = Path(args.start_target) if args.start_target else cfg.start_target
+    start = load_target(start_path) if start_path is not None else None
+    targets = [np.asarray(t, float) for t in (args.target or [])]
+    dwell = args.dwell
+    if args.targets:
+        pts, file_dwell = load_targets(args.targets)
+        targets += list(pts)
+        dwell = file_dwell or dwell
+    if not targets and args.task == "fixate" and start is not None:
+        targets = [start.xyz.mean(axis=0)]           # the known target's centre
+    region = None
+    if args.init is not None:
+        if np.shape(args.init) != (4,):
+            raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
+        region = tuple(float(v) for v in args.init)
+    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method)
+    limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
+    if task.uses_slam and start is None:
+        raise ValueError(f"task {task.kind} starts SLAM from the known target: give --start-target target.toml "
+                         f"(or [start] target in {args.rig})")
+    out.mkdir(parents=True, exist_ok=True)
+    rig = make_rig(cfg)
+    rec = SessionRecorder(out, cfg.camera, cfg.head, start, notes={"rig": str(Path(args.rig).resolve()), "task": task.kind})
+    complete, reason, s = False, "", None
+    try:
+        s = run_closed_loop(rig, task, out, start_target=start, seconds=args.seconds, settings=settings,
+                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec)
+        complete = s["ended"] in ("complete",) or s["ended"].endswith("stream ended")
+        reason = s["ended"]
+    except DriverError as e:
+        reason = f"fault: {e}"
+        raise
+    finally:
+        stop = rig.safe_stop(home=True)
+        rig.close()
+        rep = rig.chain.report()
+        rec.notes.update(safe_stop=stop, safety=rep.__dict__)
+        rec.finish(complete, reason or "stopped")
+    print(Path(out, "report.md").read_text().split("![")[0].strip())
+    print(f"wrote {out}: rgb/, rgb.txt, imu.txt, joints.txt, camera.toml, head.toml, target.toml, trajectory.tum, "
+          f"joints.csv, session.json ({'complete' if complete else 'INCOMPLETE: ' + reason}); safe stop: {stop}")
+    return 0 if not s["refusals"] else 1
+
+
+def cmd_sim_hil(args) -> int:
+    from runtime.twin.hil import HilSession
+
+    out = Path(args.out)
+    if (out / "rig.toml").exists() and not args.force:
+        raise ValueError(f"{out}: already holds a HIL session (rig.toml); give a new --out folder")
+    twin = make_twin(args.head, args.mount, args.camera)
+    twin.configure(args.scenario, seed=args.seed, seconds=args.seconds)
+    session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger)
+
+    def ready():
+        print(f"HIL ready: run  wvr run --rig {out / 'rig.toml'} --task fixate --out RUN_DIR", flush=True)
+    session.ready = ready
+    try:
+        st = session.run(progress=not args.quiet)
+    finally:
+        session.close()
+        twin.close()
+    print(f"served {st.frames} frames, {st.target_commands} target commands, {st.stalls} stalls; "
+          f"truth in {out / 'groundtruth.txt'}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    if args.what == "camera":
+        from runtime.drivers.calibrate import calibrate_camera
+
+        if not args.images or not args.board:
+            raise ValueError("wvr calibrate camera needs --images DIR and --board chessboard:COLSxROWS:SQUARE_M")
+        res = calibrate_camera(args.images, args.board, args.model, args.out)
+        print(f"{res.images_used} of {res.images_total} images used; RMS reprojection error {res.rms_px:.3f} px; "
+              f"wrote {res.path}")
+        return 0
+    from runtime.drivers.calibrate import calibrate_imu
+
+    if not args.rig:
+        raise ValueError("wvr calibrate imu needs --rig rig.toml")
+    res = calibrate_imu(args.rig, args.seconds)
+    print(f"{res.samples} samples over {res.seconds:.1f} s: gyro bias {np.round(res.gyro_bias, 5).tolist()} rad/s, "
+          f"accel bias {np.round(res.accel_bias, 4).tolist()} m/s^2 (camera frame); written into {args.rig}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -396,6 +569,51 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, help="output directory")
     _twin_options(run, SCENARIOS)
     run.set_defaults(func=cmd_sim_run)
+
+    hil = ssub.add_parser("hil", help="hardware in the loop: the twin behind a virtual Maestro, IMU and camera; writes rig.toml")
+    hil.add_argument("--out", required=True, help="folder for rig.toml, camera/, target.toml, groundtruth.txt")
+    hil.add_argument("--imu", choices=["bno085-rvc", "text"], default="text",
+                     help="the IMU stream rig.toml uses (both are served)")
+    hil.add_argument("--wait", type=float, default=5.0, help="seconds of wall time the world waits for each command")
+    hil.add_argument("--linger", type=float, default=8.0, help="seconds the board stays up after the run (safe stop)")
+    hil.add_argument("--force", action="store_true", help="reuse an --out folder that holds a HIL session")
+    hil.add_argument("--quiet", action="store_true", help="no progress bar")
+    _twin_options(hil, SCENARIOS)
+    hil.set_defaults(func=cmd_sim_hil)
+
+    hd = sub.add_parser("head", help="bring-up of the real head: home, goto E,P,C, sweep; stop / reset the e-stop")
+    hd.add_argument("--rig", required=True, help="rig.toml")
+    hd.add_argument("action", choices=["home", "goto", "sweep", "stop", "reset"])
+    hd.add_argument("angles", nargs="?", help="goto: E,P,C in degrees")
+    hd.add_argument("--rate", type=float, default=20.0, help="joint speed for the move, deg/s (default 20)")
+    hd.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for each move")
+    hd.set_defaults(func=cmd_head)
+
+    rr = sub.add_parser("run", help="the closed loop on the hardware rig (the tasks of wvr sim run); records the session")
+    rr.add_argument("--rig", required=True, help="rig.toml")
+    rr.add_argument("--task", required=True, choices=list(TASKS))
+    rr.add_argument("--target", action="append", type=_vector, metavar="X,Y,Z", help="world point, m (repeatable; "
+                    "default for fixate: the start target's centre)")
+    rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
+    rr.add_argument("--dwell", type=float, default=2.0, help="seconds on each saccade target (default 2)")
+    rr.add_argument("--limit", type=float, default=30.0, help="controlled-motion limit, deg/s (at most rig.toml's)")
+    rr.add_argument("--init", type=_vector, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")
+    rr.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    rr.add_argument("--start-target", help="target.toml: known points and their pixels in the first image "
+                    "(default: rig.toml [start] target)")
+    rr.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C or the camera ends)")
+    rr.add_argument("--out", required=True, help="output folder (the session's recording and results)")
+    rr.set_defaults(func=cmd_run)
+
+    cal = sub.add_parser("calibrate", help="camera intrinsics from board images; IMU still biases into rig.toml")
+    cal.add_argument("what", choices=["camera", "imu"])
+    cal.add_argument("--images", help="camera: a folder of board images")
+    cal.add_argument("--board", help="camera: chessboard:COLSxROWS:SQUARE_M (inner corners), e.g. chessboard:9x6:0.025")
+    cal.add_argument("--model", choices=["brown", "fisheye", "radial-sqrt"], default="brown", help="camera: lens model")
+    cal.add_argument("--out", default="camera.toml", help="camera: the camera.toml to write")
+    cal.add_argument("--rig", help="imu: rig.toml (its [imu] gets the biases)")
+    cal.add_argument("--seconds", type=float, default=10.0, help="imu: how long to hold still")
+    cal.set_defaults(func=cmd_calibrate)
 
     stab = sub.add_parser("stabilise", help="visual (and inertial) stabilisation with a software fovea")
     stab.add_argument("seq", help="sequence folder (TUM layout with camera.toml)")

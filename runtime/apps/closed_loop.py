@@ -38,7 +38,7 @@ from kinematics import JOINT_NAMES
 from kinematics.tomlfile import read_toml
 
 from ..gaze import ControllerSettings, GazeController, GazeRefused
-from ..robot import JointCommand, Observation, Robot, RobotInfo, TruthSource
+from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.system import MonoSLAM
 from ..vision2d.track import METHODS as TRACK_METHODS
@@ -211,6 +211,7 @@ class ClosedLoop:
         self._current = 0
         self._q_prev = None
         self._imu_pending = []
+        self._basis_t: float | None = None
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -228,6 +229,7 @@ class ClosedLoop:
             self.tracker = make_tracker(self.task.method, obs.image, init)
         self._q_prev = np.asarray(obs.q, float).copy()
         self._i = 0
+        self._basis_t = obs.t
 
     @property
     def prompts(self):
@@ -285,6 +287,19 @@ class ClosedLoop:
                     ctl.track(res.centre)
                 else:
                     ctl.hold()                # a lost target is said (tracking.csv), not chased
+        # What the command rests on, for the robot's safety watchdog: the newest SLAM pose, IMU
+        # sample or tracker fix (the task's own estimate; none for Path B).
+        if task.uses_slam:
+            if T_est is not None:
+                self._basis_t = obs.t
+        elif task.kind == "stabilise":
+            if len(obs.imu):
+                self._basis_t = float(obs.imu.t[-1])
+        elif task.kind == "track":
+            if i == 0 or (obs.fresh_image and not track_lost):
+                self._basis_t = obs.t
+        else:
+            self._basis_t = None
         cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
         if cmd.landed:
             self.log.events.append({"t": obs.t, "event": "landed", "target": self._current % len(task.targets)})
@@ -299,16 +314,12 @@ class ClosedLoop:
             T_est=slam.T_world_cam() if slam is not None else np.full((4, 4), np.nan), lost=lost,
             polygon=np.asarray(poly, float), track_lost=track_lost))
         self._i += 1
-        return JointCommand(cmd.q, cmd.qd)
+        return JointCommand(cmd.q, cmd.qd, basis_t=self._basis_t)
 
 
 # ---------------------------------------------------------------------------------------------
 # the run: step until done, log, and (with truth) evaluate
 # ---------------------------------------------------------------------------------------------
-
-class SessionEnded(Exception):
-    """Raised by a robot's step when its session ends of itself (a replayed camera ran out)."""
-
 
 def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: StartTarget | None = None,
                     seconds: float | None = None, settings: ControllerSettings = ControllerSettings(),
@@ -336,7 +347,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     truths = []
     obs = robot.reset()
     loop.start(obs)
-    interrupted = None
+    interrupted, fault = None, None
     bar = tqdm(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
     try:
@@ -358,6 +369,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                 break
     except KeyboardInterrupt:
         interrupted = "stopped by Ctrl-C"
+    except Exception as e:  # noqa: BLE001 - a device fault: write what was done, then re-raise
+        interrupted, fault = f"fault: {e}", e
     finally:
         bar.close()
     log = loop.log
@@ -394,6 +407,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
         write_tracking(out, log, None)
     (out / "task.toml").write_text(task_toml(task, task_info or {}))
     write_outputs(out, times, summary, cmd_rate, settings)
+    if fault is not None:
+        raise fault
     return summary
 
 
