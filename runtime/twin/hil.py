@@ -79,6 +79,7 @@ class VirtualMaestro:
         self._lock = threading.RLock()
         self.targets_received = 0          # Set Target / Set Multiple Targets commands so far
         self.log: list[tuple[float, int, list[int]]] = []   # (t, channel, targets) of every target command
+        self.wall_times: list[float] = []    # wall clock (monotonic) of every Set Multiple Targets
         self.commands = 0
 
     # -- the protocol
@@ -152,6 +153,7 @@ class VirtualMaestro:
                     self.ch[first + i].target = float(v)
             self.targets_received += 1
             self.log.append((self.t, first, vals))
+            self.wall_times.append(time.monotonic())
         elif cmd == SET_SPEED:
             if d[0] < len(self.ch):
                 self.ch[d[0]].speed = v14(d[1], d[2])
