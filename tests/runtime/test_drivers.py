@@ -73,7 +73,11 @@ def test_maestro_driver_against_the_virtual_board_both_protocols(board):
     m = mp.Maestro.open(wc.path, device=5)
     try:
         m.set_target(0, 6500)
-        time.sleep(0.02)
+    finally:
+        m.close()
+    m = mp.Maestro.open(wc.path)
+    try:
+        assert m.get_position(0) == 7000 and vm.commands > 0   # the query is answered after the other's bytes
     finally:
         m.close()
     assert vm.ch[0].target == 7000
@@ -365,6 +369,7 @@ def test_start_up_sets_the_rig_limits_on_the_board(tmp_path, board):
     sb = ServoBoard(cfg, mp.Maestro.open(wc.path))
     try:
         sb.start()
+        sb.maestro.get_position(0)                                  # a round trip: the board has read it all
         us_s = 10.0 * 180 / math.pi * 10.2                          # the HS-50's 10 rad/s
         assert [vm.ch[c].speed for c in range(3)] == [mp.speed_units(us_s)] * 3
         assert [vm.ch[c].accel for c in range(3)] == [mp.accel_units(5000 * 10.2)] * 3
