@@ -76,10 +76,11 @@ def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
 
 
 def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: int = 0, settings=None,
-                progress: bool = True, on_period=None, start_target=None) -> dict:
+                progress: bool = True, on_period=None, start_target=None, click_error_px: float = CLICK_ERROR_PX) -> dict:
     """The closed loop on the twin for a scenario: the twin as the Robot and the TruthSource
-    for scoring, started from a simulated person's clicks on its first image (or from
-    ``start_target``). Writes the files of ``wvr sim run`` into ``out``; returns the summary."""
+    for scoring, started from a simulated person's clicks on its first image, ``click_error_px``
+    off (or from ``start_target``). Writes the files of ``wvr sim run`` into ``out``; returns
+    the summary."""
     from runtime.apps.closed_loop import run_closed_loop
     from runtime.gaze import ControllerSettings
     from runtime.twin.scenarios import get_scenario
@@ -87,7 +88,10 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
     sc = get_scenario(scenario)
     twin.configure(sc, seed=seed, seconds=seconds)
     secs = sc.seconds if seconds is None else float(seconds)
-    start = start_target if start_target is not None else (lambda obs: clicked_target(twin, seed=seed))
+    if not (np.isfinite(click_error_px) and click_error_px >= 0):
+        raise ValueError(f"click error {click_error_px!r} px must be a distance >= 0 (pixels)")
+    start = start_target if start_target is not None else \
+        (lambda obs: clicked_target(twin, error_px=click_error_px, seed=seed))
     s = run_closed_loop(twin, task, out, start_target=start, seconds=secs,
                         settings=settings or ControllerSettings(), progress=progress, truth=twin, label=sc.name,
                         task_info={"scenario": sc.name, "seed": seed}, on_period=on_period)

@@ -203,7 +203,8 @@ def cmd_sim_run(args) -> int:
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     twin = make_twin(args.head, args.mount, args.camera)
     try:
-        s = run_on_twin(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings)
+        s = run_on_twin(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings,
+                        click_error_px=getattr(args, "click_error", 2.5))
     finally:
         twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
@@ -423,7 +424,7 @@ def cmd_sim_hil(args) -> int:
         raise ValueError(f"{out}: already holds a HIL session (rig.toml); give a new --out folder")
     twin = make_twin(args.head, args.mount, args.camera)
     twin.configure(args.scenario, seed=args.seed, seconds=args.seconds)
-    session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger)
+    session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger, click_error_px=args.click_error)
 
     def ready():
         print(f"HIL ready: run  wvr run --rig {out / 'rig.toml'} --task fixate --out RUN_DIR", flush=True)
@@ -566,16 +567,21 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--init", type=_vector, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    run.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
+                          "(default 2.5; 0: the exact projection)")
     run.add_argument("--out", required=True, help="output directory")
     _twin_options(run, SCENARIOS)
     run.set_defaults(func=cmd_sim_run)
 
     hil = ssub.add_parser("hil", help="hardware in the loop: the twin behind a virtual Maestro, IMU and camera; writes rig.toml")
     hil.add_argument("--out", required=True, help="folder for rig.toml, camera/, target.toml, groundtruth.txt")
-    hil.add_argument("--imu", choices=["bno085-rvc", "text"], default="text",
+    hil.add_argument("--imu", choices=["bno085-rvc", "text"], default="bno085-rvc",
                      help="the IMU stream rig.toml uses (both are served)")
     hil.add_argument("--wait", type=float, default=5.0, help="seconds of wall time the world waits for each command")
     hil.add_argument("--linger", type=float, default=8.0, help="seconds the board stays up after the run (safe stop)")
+    hil.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="how far off (px) the simulated person clicks target.toml's corners (default 2.5)")
     hil.add_argument("--force", action="store_true", help="reuse an --out folder that holds a HIL session")
     hil.add_argument("--quiet", action="store_true", help="no progress bar")
     _twin_options(hil, SCENARIOS)

@@ -332,8 +332,12 @@ class HilSession:
     targets. start_target : the Target to write as target.toml (default: a simulated click).
     """
 
-    def __init__(self, twin, out: str | Path, imu: str = "text", wait_s: float = 5.0, start_target=None,
-                 linger_s: float = 8.0, click_seed: int = 0):
+    def __init__(self, twin, out: str | Path, imu: str = "bno085-rvc", wait_s: float = 5.0, start_target=None,
+                 linger_s: float = 8.0, click_seed: int = 0, click_error_px: float = 2.5):
+        """wait_s : a period's targets not arriving within this (wall time) is a stall: the
+        controller has stopped (Ctrl-C, a fault), so the simulated session ends there and the
+        board stays on the line for ``linger_s`` with its outputs moving in wall time (the
+        host's safe stop: hold, go home slowly)."""
         self.twin = twin
         self.out = Path(out)
         self.imu_protocol = imu
@@ -341,6 +345,7 @@ class HilSession:
         self.linger_s = linger_s
         self.start_target = start_target
         self.click_seed = click_seed
+        self.click_error_px = float(click_error_px)
         self.stats = HilStats()
         self.cal = {n: HIL_CALIBRATION[n] for n in JOINT_NAMES}
         self.channels = [HIL_CHANNELS[n] for n in JOINT_NAMES]
@@ -431,7 +436,7 @@ class HilSession:
         if target is None:
             from .clicks import clicked_target
 
-            target = clicked_target(twin, 2.5, np.random.default_rng(self.click_seed))
+            target = clicked_target(twin, self.click_error_px, np.random.default_rng(self.click_seed))
         save_target(target, self.out / "target.toml")
         for c, p in zip(self.channels, self._to_qus(twin.filter.q)):
             ch = self.maestro.ch[c]
@@ -451,6 +456,8 @@ class HilSession:
                 # The first command waits for the controller to start (imports, compilation).
                 if not self._targets_event.wait(self.wait_s if k > 1 else max(self.wait_s, 120.0)):
                     self.stats.stalls += 1
+                    self.stats.notes.append(f"the controller stopped answering at t = {obs.t:.3f} s; session ended")
+                    break
                 self.stats.waited_s += time.monotonic() - t0
                 self._targets_event.clear()
                 profile = np.empty((twin.steps_per_frame, 3))

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 def test_wvr_run_against_the_hil_twin_fixates_as_sim_run_does(tmp_path):
     twin = make_twin()
     twin.configure("workbench-static", seed=0, seconds=1.5)
-    hil = HilSession(twin, tmp_path / "hil", imu="text", linger_s=6.0)
+    hil = HilSession(twin, tmp_path / "hil", imu="bno085-rvc", linger_s=6.0)
     ready = threading.Event()
     hil.ready = ready.set
     th = threading.Thread(target=hil.run, kwargs={"progress": False})
@@ -90,3 +90,70 @@ def test_wvr_run_with_a_missing_port_is_one_line(tmp_path):
                         str(tmp_path / "run")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
     assert "cannot open" in r.stderr
+
+
+def _serve(tmp_path, seconds, wait_s=5.0, linger_s=6.0):
+    twin = make_twin()
+    twin.configure("workbench-static", seed=0, seconds=seconds)
+    hil = HilSession(twin, tmp_path / "hil", wait_s=wait_s, linger_s=linger_s)
+    ready = threading.Event()
+    hil.ready = ready.set
+    th = threading.Thread(target=hil.run, kwargs={"progress": False})
+    th.start()
+    assert ready.wait(60)
+    return twin, hil, th
+
+
+def test_unplugging_the_board_mid_run_is_one_line_and_keeps_the_session(tmp_path):
+    import time
+
+    twin, hil, th = _serve(tmp_path, seconds=1.2, wait_s=1.0, linger_s=0.0)
+
+    def unplug():
+        while hil.stats.frames < 12:
+            time.sleep(0.01)
+        hil.maestro_pty.unplug()
+    u = threading.Thread(target=unplug)
+    u.start()
+    try:
+        r = subprocess.run([sys.executable, "-m", "wvr", "run", "--rig", str(tmp_path / "hil" / "rig.toml"), "--task",
+                            "stabilise", "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=300)
+    finally:
+        u.join()
+        th.join(60)
+        hil.close()
+        twin.close()
+    errors = [line for line in r.stderr.splitlines() if line.startswith("wvr: error")]
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(errors) == 1   # (the rest is the progress bar)
+    assert "unplugged" in errors[0]
+    session = json.loads((tmp_path / "run" / "session.json").read_text())
+    assert session["complete"] is False and "fault" in session["status"]
+    seq = open_sequence(tmp_path / "run")                  # what was recorded before the fault is intact
+    assert 8 <= len(seq) <= 14 and seq.imu is not None
+    assert (tmp_path / "run" / "joints.csv").exists()
+
+
+def test_ctrl_c_holds_homes_and_closes(tmp_path):
+    import signal
+    import time
+
+    twin, hil, th = _serve(tmp_path, seconds=3.0, wait_s=1.0, linger_s=8.0)
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "wvr", "run", "--rig", str(tmp_path / "hil" / "rig.toml"), "--task",
+                              "stabilise", "--out", str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+        while hil.stats.frames < 20:
+            time.sleep(0.01)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        th.join(60)
+        hil.close()
+        twin.close()
+    assert p.returncode == 0, err
+    assert "homed" in out and hil.stats.frames < 80 and hil.stats.stalls == 1
+    session = json.loads((tmp_path / "run" / "session.json").read_text())
+    assert session["complete"] is False and "Ctrl-C" in session["status"]
+    # The board's outputs went home (0 deg: the calibration's neutral pulses), slowly.
+    home = hil._to_qus(np.zeros(3))
+    np.testing.assert_allclose(hil.maestro.positions_qus(hil.channels), home, atol=2)
