@@ -81,8 +81,9 @@ def calibrate_camera(images_dir, board: str, model: str = "brown", out: str | Pa
     if model == "fisheye":
         K = np.eye(3)
         D = np.zeros((4, 1))
-        flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
-        rms, K, D, _, _ = cv2.fisheye.calibrate([o[:, None] for o in objs], [i[:, None] for i in imgs], size, K, D,
+        flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+        rms, K, D, _, _ = cv2.fisheye.calibrate([o.reshape(1, -1, 3).astype(np.float64) for o in objs],
+                                                [i.reshape(1, -1, 2).astype(np.float64) for i in imgs], size, K, D,
                                                 flags=flags, criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-9))
         cam = CameraIntrinsics(width=w, height=h, fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
                                model="fisheye", k1=float(D[0, 0]), k2=float(D[1, 0]), k3=float(D[2, 0]), k4=float(D[3, 0]))

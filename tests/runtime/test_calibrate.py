@@ -33,6 +33,31 @@ def render_board(cam: CameraIntrinsics, R_cam_board, t_cam_board) -> np.ndarray:
     return cv2.GaussianBlur(img.reshape(cam.height, cam.width), (3, 3), 0.7)
 
 
+def render_set(tmp_path, true, n=10, seed=3):
+    rng = np.random.default_rng(seed)
+    centre = np.array([(COLS - 1) * SQ / 2, (ROWS - 1) * SQ / 2, 0.0])
+    for k in range(n):
+        R = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, 3)).as_matrix()
+        t = np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), rng.uniform(0.3, 0.45)]) - R @ centre
+        cv2.imwrite(str(tmp_path / f"b{k:02d}.png"), render_board(true, R, t))
+
+
+@pytest.mark.parametrize("model, true", [
+    ("fisheye", CameraIntrinsics(width=640, height=480, fx=300.0, fy=300.0, cx=318.0, cy=242.0, model="fisheye",
+                                 k1=0.05, k2=-0.01)),
+    ("radial-sqrt", CameraIntrinsics(width=640, height=480, fx=400.0, fy=400.0, cx=321.0, cy=238.0, model="radial-sqrt",
+                                     kd1=2e-7)),
+])
+def test_wide_angle_models_are_recovered(tmp_path, model, true):
+    render_set(tmp_path, true)
+    res = calibrate_camera(tmp_path, f"chessboard:{COLS}x{ROWS}:{SQ}", model, tmp_path / "camera.toml")
+    cam = load_camera(tmp_path / "camera.toml")
+    assert cam.model == model and res.rms_px < 0.5
+    assert abs(cam.fx - true.fx) / true.fx < 0.02 and abs(cam.cx - true.cx) < 4
+    if model == "radial-sqrt":
+        assert abs(cam.kd1 - true.kd1) < 0.3 * true.kd1
+
+
 def test_camera_intrinsics_recovered_from_rendered_boards(tmp_path):
     true = CameraIntrinsics(width=640, height=480, fx=520.0, fy=518.0, cx=322.0, cy=236.0, k1=-0.12, k2=0.05)
     rng = np.random.default_rng(3)

@@ -34,3 +34,11 @@ def test_bad_rig_files_and_options_are_one_line(tmp_path):
     r = run("sim", "run", "--scenario", "workbench-static", "--task", "fixate", "--click-error", "-1", "--seconds", "0.2",
             "--out", str(tmp_path / "sim"))
     assert one_line_error(r) and "click error" in r.stderr
+
+
+def test_a_recording_carries_the_head_it_was_made_with(tmp_path):
+    from kinematics import load_head, reference_head
+
+    r = run("sim", "record", "--scenario", "workbench-static", "--seconds", "0.2", "--out", str(tmp_path / "seq"))
+    assert r.returncode == 0, r.stderr
+    assert load_head(tmp_path / "seq" / "head.toml") == reference_head()
