@@ -26,7 +26,7 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 INCOMPLETE = "INCOMPLETE"
 LOCK = ".wvr-lock"
@@ -144,13 +144,17 @@ def _command() -> str:
 
 
 @contextmanager
-def output_folder(path: str | Path, flag: str = "--out") -> Iterator[Path]:
+def output_folder(path: str | Path, flag: str = "--out",
+                  check: Callable[[Path], None] | None = None) -> Iterator[Path]:
     """Write a result folder: checked and created, locked, marked INCOMPLETE until the block ends.
 
+    check : called with the folder once the lock is held and before the marker is written, to
+        refuse what is there (a sweep without --resume into a finished sweep): a refusal leaves
+        an existing folder exactly as it was.
     On normal exit the marker is removed (the folder is complete) and the lock released. On an
     exception the marker stays (a folder this call created and nothing was written into is
     removed again), so readers refuse what was left. Nested use on the same folder (a command
-    around a runner) is one write: the outer block owns the marker and the lock.
+    around a runner) is one write: the outer block owns the marker, the lock and the check.
     """
     path = check_output(path, flag)
     key = path.resolve()
@@ -169,6 +173,14 @@ def output_folder(path: str | Path, flag: str = "--out") -> Iterator[Path]:
         if created:
             shutil.rmtree(path, ignore_errors=True)
         raise
+    if check is not None:
+        try:
+            check(path)
+        except BaseException:
+            _release(path, fd)
+            if created:
+                shutil.rmtree(path, ignore_errors=True)
+            raise
     marker = path / INCOMPLETE
     try:
         marker.write_text(f"{_command()}\nstarted {time.strftime('%Y-%m-%d %H:%M:%S')} by pid {os.getpid()}; this "
