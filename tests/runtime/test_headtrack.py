@@ -14,9 +14,11 @@ import pytest
 from kinematics import reference_head
 from kinematics.camera import CameraIntrinsics, project
 from runtime.vision2d.headscene import HeadScene, render_head_sequence
-from runtime.vision2d.headtrack import (HeadTracker, HeadTrackerConfig, head_pose, head_to_joint_targets,
-                                        intersect_rays, polyhedral_head, rotation_error_rad,
-                                        rotation_from_ypr, ypr_from_rotation)
+from kinematics.rays import RayCaster
+from kinematics.transforms import rotation_angle as rotation_error_rad
+from runtime.gaze.slaving import head_to_joint_targets
+from runtime.vision2d.headmodel import head_pose, polyhedral_head, rotation_from_ypr, ypr_from_rotation
+from runtime.vision2d.headtrack import HeadTracker, HeadTrackerConfig
 
 #: Small frames for speed: default_camera() halved (320x240, f = 257.35 px), head 0.6 m away.
 CAM = CameraIntrinsics(width=320, height=240, fx=257.35, fy=257.35, cx=159.5, cy=119.5)
@@ -51,6 +53,10 @@ def test_ypr_convention_and_round_trip():
     rng = np.random.default_rng(1)
     ypr = rng.uniform([-1.4, -1.2, -1.4], [1.4, 1.2, 1.4], (50, 3))
     assert np.allclose(ypr_from_rotation(rotation_from_ypr(ypr)), ypr, atol=1e-9)
+
+
+def intersect_rays(vertices, faces, origins, directions):
+    return RayCaster(vertices, faces).first_hit(origins, directions)
 
 
 def test_intersect_rays_against_the_ellipsoid():
