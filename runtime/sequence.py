@@ -47,7 +47,7 @@ import tomli_w
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, load_camera, save_camera
-from kinematics.outdir import OutputFolderError, check_complete, output_folder
+from kinematics.outdir import OutputFolderError, check_complete, check_output, output_folder
 from kinematics.tomlfile import read_toml
 
 # Column layouts of the text files (the '#' header line each writer puts at the top).
@@ -669,6 +669,19 @@ def _read_rgb_list(path: Path, name: str = "rgb.txt") -> tuple[np.ndarray, list[
     return np.array(times, dtype=np.float64), paths
 
 
+def check_new_recording(root: str | Path) -> Path:
+    """Refuse, before any work, a folder a new recording cannot be written into: one that cannot
+    be created or written (kinematics.outdir.check_output), or that already holds a sequence."""
+    root = Path(root)
+    try:
+        check_output(root)
+    except OutputFolderError as e:
+        raise SequenceError(str(e)) from None
+    if (root / "rgb.txt").exists():
+        raise SequenceError(f"{root / 'rgb.txt'}: already exists; record into a new folder, or delete {root} first")
+    return root
+
+
 class SequenceWriter:
     """Record a sequence folder as it happens (a context manager).
 
@@ -692,9 +705,8 @@ class SequenceWriter:
                  overwrite: bool = False):
         self.root = Path(root)
         self.camera = camera
-        if (self.root / "rgb.txt").exists() and not overwrite:
-            raise SequenceError(f"{self.root / 'rgb.txt'}: already exists; record into a new folder, or delete "
-                                f"{self.root} first")
+        if not overwrite:
+            check_new_recording(self.root)
         self._files: dict[str, TextIO] = {}
         self._closed = True
         self._folder = ExitStack()
