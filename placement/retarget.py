@@ -137,10 +137,11 @@ def _axes(up: str) -> _Frame:
 def _check_drivers(path: Path, bvh: BvhData, drivers: dict[str, int], allow_missing: bool) -> None:
     missing = [s for s in SEGMENTS if s not in drivers]
     if missing and not allow_missing:
-        raise BodyError(f"{path.name}: no joint drives segments {missing}; expected CMU or Mixamo names (Hips, Spine, "
-                        f"Spine1, Neck, Head, LeftArm, LeftForeArm, LeftHand, LeftUpLeg, LeftLeg, LeftFoot, Right...); "
-                        f"the file has {list(bvh.names)}; rename them, or keep those segments at rest "
-                        f"(--allow-missing-joints; allow_missing=True in Python)")
+        names = list(bvh.names[:12]) + (["..."] if len(bvh.names) > 12 else [])
+        raise BodyError(f"{path.name}: no joint drives segments {missing}; rename the joints, or keep those segments "
+                        f"at rest (--allow-missing-joints; allow_missing=True in Python); expected CMU or Mixamo names "
+                        f"(Hips, Spine, Spine1, Neck, Head, LeftArm, LeftForeArm, LeftHand, LeftUpLeg, LeftLeg, "
+                        f"LeftFoot, Right...), the file has {', '.join(names)}")
 
 
 def _check_up(path: Path, frame: _Frame, drivers: dict[str, int], neck_anchor: int | None, rest: np.ndarray,

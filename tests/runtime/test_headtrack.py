@@ -93,8 +93,8 @@ def test_renderer_pose_is_self_consistent(scene, ypr_deg):
     assert (drawn & projected).sum() / (drawn | projected).sum() > 0.9
     # Landmarks projected with the pose land on their features: eyes dark (iris), mouth red.
     R, t = T[:3, :3], T[:3, 3]
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(float)
-    skin = np.median(gray[drawn])
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(float)
+    skin = np.median(grey[drawn])
     for name in ("left_eye", "right_eye", "mouth"):
         X = scene.head.landmarks[name]
         n_cam = R @ X / np.linalg.norm(X)
@@ -105,7 +105,7 @@ def test_renderer_pose_is_self_consistent(scene, ypr_deg):
         if name == "mouth":
             assert np.max(patch[:, 0] - patch[:, 1]) > 60, (name, patch)
         else:
-            assert gray[v - 1: v + 2, u - 1: u + 2].min() < skin - 60, (name, skin)
+            assert grey[v - 1: v + 2, u - 1: u + 2].min() < skin - 60, (name, skin)
     # The left eye (head +y) is on the image's right when the head faces the camera.
     if ypr_deg == (0, 0, 0):
         uv = project(CAM, np.stack([R @ scene.head.landmarks[k] + t for k in ("left_eye", "right_eye")]))
