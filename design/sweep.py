@@ -5,6 +5,8 @@ Files in the output folder while a sweep runs:
 ``sweep.toml``        the sweep as run (a resume refuses a different one)
 ``evaluations.csv``   every design evaluated, appended and flushed as each finishes
 ``state.pkl``         the search algorithm after the last completed batch (atomic rename)
+``INCOMPLETE``        present until the run ends (kinematics.outdir), with ``.wvr-lock``, which
+                      keeps a second run out of the folder while this one writes it
 
 A resume restores the algorithm from ``state.pkl``; because every algorithm is deterministic
 for its saved random state, it asks the same next batch again, and any design of that batch

@@ -608,7 +608,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wvr: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("wvr: interrupted; any output folder is marked INCOMPLETE", file=sys.stderr)
+        print("wvr: interrupted (an output folder it was writing stays marked INCOMPLETE)", file=sys.stderr)
         return 130
 
 
