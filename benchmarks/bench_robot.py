@@ -13,7 +13,6 @@ hardware). Figures:
   camera's raw frames (target: at least 5x less), seeds 0-2, median and worst.
 """
 
-import json
 import os
 import subprocess
 import sys

@@ -34,7 +34,7 @@ from kinematics import HeadGeometry, ServoFilter, forward_kinematics, gaze_at_di
 from kinematics.camera import CameraIntrinsics
 
 from .attitude import AttitudeFilter
-from .modes import MODES, Body, Desired, Fixate, Hold, Mode, Saccade, Slave, Stabilise, Track
+from .modes import Body, Desired, Fixate, Hold, Mode, Saccade, Slave, Stabilise, Track
 from .prompts import Prompt, wearer_prompt
 from .qp import RateQP, RateQPSettings
 

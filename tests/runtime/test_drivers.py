@@ -5,7 +5,6 @@ checksums, dropped reports, rates by differencing; the text IMU; camera sources;
 
 import math
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
