@@ -39,6 +39,9 @@ from .scene import CARD_BODY, HEAD_PREFIX, OCCLUDER_BODY, TIMESTEP, WEARER_PREFI
 from .wearer import Wearer
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+#: Independent random streams drawn from a run's seed, one per use, so that adding one leaves
+#: the others (and the white sensor noise of ``default_rng(seed)``) as they were.
+MOTION_STREAM, IMU_STREAM, CAMERA_STREAM, CLICK_STREAM = 1, 2, 3, 4
 
 
 def _egl_display_ready() -> None:
@@ -94,11 +97,14 @@ class Twin:
         shoulder mount).
     wearer_for : callable (scenario, seconds) -> :class:`Wearer` in world coordinates.
     frame_rate, imu_rate : Hz. gyro_noise, accel_noise, encoder_noise : standard deviations.
+    motion_variation : each run's seed moves the body and varies the gaze sweeps a little
+        (:meth:`Scenario.varied`); False runs the scenario exactly as named.
     """
 
     def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, mount: Mount | Callable[[Wearer], Mount],
                  wearer_for: Callable[[Scenario, float], Wearer], frame_rate: float = 30.0, imu_rate: float = 200.0,
-                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0):
+                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0,
+                 motion_variation: bool = True):
         self.head = head
         self.camera = camera
         self._mount = mount
@@ -107,18 +113,25 @@ class Twin:
         self.steps_per_frame = int(round(1.0 / (frame_rate * TIMESTEP)))
         self.steps_per_imu = int(round(1.0 / (imu_rate * TIMESTEP)))
         self.noise = (gyro_noise, accel_noise, encoder_noise)
+        self.motion_variation = motion_variation
         self.formation: ImageFormation = image_formation(camera)
         self.model = None
         self.renderer = None
 
     # ------------------------------------------------------------------ set-up
     def reset(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
-              q0=None) -> Observation:
+              q0=None, scene_seed: int | None = None) -> Observation:
         """Build the scene for a scenario and seed; returns the first observation (t = 0).
 
-        ``q0`` : initial joint angles (default: the scripted gaze's first fixation)."""
+        ``seed`` : the run (motion variation, sensor noise). ``scene_seed`` : the place (textures,
+        object layout); default the run's seed. ``q0`` : initial joint angles (default: the
+        scripted gaze's first fixation)."""
         sc = get_scenario(scenario)
+        if self.motion_variation:
+            sc = sc.varied(np.random.default_rng([seed, MOTION_STREAM]))
         self.scenario = sc
+        self.seed = seed
+        self.scene_seed = seed if scene_seed is None else int(scene_seed)
         self.seconds = sc.seconds if seconds is None else float(seconds)
         self.rng = np.random.default_rng(seed)
         self.wearer = self.wearer_for(sc, self.seconds + 1.0)
@@ -132,8 +145,8 @@ class Twin:
             c, s = math.cos(sc.body_yaw), math.sin(sc.body_yaw)
             back = np.array([-s, c]) * (thigh + 0.05)       # the body's +y (behind it) in the world
             stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
-        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
-                                  stool=stool, moving_card=sc.moving_card)
+        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.scene,
+                                  self.scene_seed, stool=stool, moving_card=sc.moving_card)
         self._close_renderer()
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
