@@ -71,10 +71,10 @@ SHELF = (0.3, 1.9, 5)           # bookcase depth, height, number of shelves
 
 def build_office(doc: SceneDoc, o: OfficeDesk, rng: np.random.Generator) -> None:
     """Add the office's lights, room, posters, desk and what is on it, bookcase and both targets."""
-    doc.headlight(ambient=(0.24, 0.24, 0.24), diffuse=(0.16, 0.16, 0.16))
+    doc.headlight(ambient=(0.16, 0.16, 0.16), diffuse=(0.11, 0.11, 0.11))
     _office_materials(doc, rng)
-    doc.light("ceiling0", (0.0, -0.4, 2.55), (0.05, -0.1, -1.0), (0.5, 0.5, 0.48), specular=(0.05, 0.05, 0.05))
-    doc.light("ceiling1", (-1.5, 0.5, 2.55), (0.3, -0.4, -1.0), (0.22, 0.22, 0.22))
+    doc.light("ceiling0", (0.0, -0.4, 2.55), (0.05, -0.1, -1.0), (0.34, 0.34, 0.33), specular=(0.05, 0.05, 0.05))
+    doc.light("ceiling1", (-1.5, 0.5, 2.55), (0.3, -0.4, -1.0), (0.15, 0.15, 0.15))
     _room(doc, o)
     _posters(doc, o, rng)
     _desk(doc, o, rng)

@@ -32,6 +32,8 @@ from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, gaze_at_point
 from kinematics.camera import CameraIntrinsics
 from kinematics.mjcf import R_OPT_MJCAM
 
+from .image_realism import CAMERA_SENSOR, CameraSensor, Exposure
+from .imu_errors import BMI088, ImuErrors, ImuSpec
 from .mount import Mount
 from .render import ImageFormation, image_formation
 from .scenarios import Scenario, get_scenario
@@ -97,6 +99,12 @@ class Twin:
         shoulder mount).
     wearer_for : callable (scenario, seconds) -> :class:`Wearer` in world coordinates.
     frame_rate, imu_rate : Hz. gyro_noise, accel_noise, encoder_noise : standard deviations.
+    imu : the IMU's error model (:mod:`runtime.twin.imu_errors`): a constant bias per run, its
+        random walk, white noise at the data sheet's density, scale and cross-axis errors and a
+        clock offset; None gives an ideal IMU with white noise ``gyro_noise``, ``accel_noise``.
+    camera_sensor : what a real camera adds to the renders (:mod:`runtime.twin.image_realism`):
+        motion blur over the exposure, auto-exposure with a lag, shot and read noise on 8 bits;
+        None gives the clean renders.
     motion_variation : each run's seed moves the body and varies the gaze sweeps a little
         (:meth:`Scenario.varied`); False runs the scenario exactly as named.
     """
@@ -104,6 +112,7 @@ class Twin:
     def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, mount: Mount | Callable[[Wearer], Mount],
                  wearer_for: Callable[[Scenario, float], Wearer], frame_rate: float = 30.0, imu_rate: float = 200.0,
                  gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0,
+                 imu: ImuSpec | None = BMI088, camera_sensor: CameraSensor | None = CAMERA_SENSOR,
                  motion_variation: bool = True):
         self.head = head
         self.camera = camera
@@ -113,6 +122,10 @@ class Twin:
         self.steps_per_frame = int(round(1.0 / (frame_rate * TIMESTEP)))
         self.steps_per_imu = int(round(1.0 / (imu_rate * TIMESTEP)))
         self.noise = (gyro_noise, accel_noise, encoder_noise)
+        self.imu_spec = imu
+        self.imu_errors: ImuErrors | None = None
+        self.camera_sensor = camera_sensor
+        self.exposure: Exposure | None = None
         self.motion_variation = motion_variation
         self.formation: ImageFormation = image_formation(camera)
         self.model = None
@@ -134,6 +147,10 @@ class Twin:
         self.scene_seed = seed if scene_seed is None else int(scene_seed)
         self.seconds = sc.seconds if seconds is None else float(seconds)
         self.rng = np.random.default_rng(seed)
+        self.imu_errors = None if self.imu_spec is None else ImuErrors.draw(
+            self.imu_spec, 1.0 / (self.steps_per_imu * TIMESTEP), np.random.default_rng([seed, IMU_STREAM]))
+        self.exposure = None if self.camera_sensor is None else Exposure(
+            self.camera_sensor, self.formation, 1.0 / self.frame_rate, np.random.default_rng([seed, CAMERA_STREAM]))
         self.wearer = self.wearer_for(sc, self.seconds + 1.0)
         self.mount = self._mount(self.wearer) if callable(self._mount) else self._mount
         self.ms = self.wearer.index(self.mount.segment)
@@ -249,30 +266,76 @@ class Twin:
 
     def _imu_samples(self) -> np.ndarray:
         """IMU rows for every sample time k (multiple of steps_per_imu) with k + 1 recorded."""
+        if self.imu_errors is not None:
+            return self._measured_imu_samples()
         rows = []
         while self._imu_next + 1 <= self.k:
             k = self._imu_next
-            if k == 0:
-                km, kp = 0, 1                     # one-sided at the very start
-            else:
-                km, kp = k - 1, k + 1
-            h = (kp - km) * TIMESTEP
-            w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
-            if k == 0:
-                a_world = np.zeros(3)             # at rest at t = 0
-            else:
-                a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
-            f = self.cam_R[k].T @ (a_world - GRAVITY)
+            w, f = self._true_imu(k)
             g_n, a_n, _ = self.noise
             rows.append([k * TIMESTEP, *(w + self.rng.normal(0, g_n, 3)), *(f + self.rng.normal(0, a_n, 3))])
             self._imu_next += self.steps_per_imu
         return np.array(rows).reshape(-1, 7)
 
+    def _true_imu(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(angular rate (3,) rad/s, specific force (3,) m/s^2) in the optical frame at physics
+        step k, by central differences (needs step k + 1 recorded)."""
+        if k == 0:
+            km, kp = 0, 1                     # one-sided at the very start
+        else:
+            km, kp = k - 1, k + 1
+        h = (kp - km) * TIMESTEP
+        w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
+        if k == 0:
+            a_world = np.zeros(3)             # at rest at t = 0
+        else:
+            a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
+        return w, self.cam_R[k].T @ (a_world - GRAVITY)
+
+    def _measured_imu_samples(self) -> np.ndarray:
+        """IMU rows through the run's error model: each sample stamped k (IMU clock) is the truth
+        at camera time k - time_offset (interpolated between physics steps), then biased,
+        scaled, misaligned and noisy."""
+        e = self.imu_errors
+        stamps, w_true, f_true = [], [], []
+        while True:
+            k = self._imu_next
+            j = max(k - e.time_offset_s / TIMESTEP, 0.0)   # the physics step (fractional) it was taken at
+            j0 = int(math.floor(j))
+            frac = j - j0
+            if j0 + (2 if frac > 1e-9 else 1) > self.k:
+                break
+            w0, f0 = self._true_imu(j0)
+            if frac > 1e-9:
+                w1, f1 = self._true_imu(j0 + 1)
+                w0, f0 = (1 - frac) * w0 + frac * w1, (1 - frac) * f0 + frac * f1
+            stamps.append(k * TIMESTEP)
+            w_true.append(w0)
+            f_true.append(f0)
+            self._imu_next += self.steps_per_imu
+        if not stamps:
+            return np.zeros((0, 7))
+        w, f = e.measure(np.array(stamps), np.array(w_true), np.array(f_true))
+        return np.column_stack([stamps, w, f])
+
     def _observe(self) -> Observation:
         self.renderer.update_scene(self.data, camera=self.cam_id)
-        img = self.formation.form(self.renderer.render())
+        rendered = self.renderer.render()
+        img = self.formation.form(rendered) if self.exposure is None else \
+            self.exposure.image(rendered, self._rotation_over_half_exposure())
         enc = self.data.qpos[self.qadr] + self.rng.normal(0, self.noise[2], 3) if self.noise[2] else self.data.qpos[self.qadr].copy()
         return Observation(t=self.t, image=img, imu=self._imu_samples(), encoders=np.array(enc))
+
+    def _rotation_over_half_exposure(self) -> np.ndarray:
+        """(3,) rad: the rotation vector of R_world_cam(t)^T R_world_cam(t - T/2) for the
+        exposure T, from the recorded camera track (scaled from the nearest whole physics step;
+        zero at the start)."""
+        half = 0.5 * self.camera_sensor.exposure_s
+        k0 = max(self.k - max(1, int(round(half / TIMESTEP))), 0)
+        if k0 == self.k:
+            return np.zeros(3)
+        phi = Rotation.from_matrix(self.cam_R[self.k].T @ self.cam_R[k0]).as_rotvec()
+        return phi * (half / ((self.k - k0) * TIMESTEP))
 
     # ------------------------------------------------------------------ truth (evaluation only)
     def render_depth(self) -> np.ndarray:
