@@ -1,8 +1,9 @@
 """The twin in closed loop: ``reset(scenario, seed)``, then ``step(joint command)`` per frame.
 
-What a controller gets (:class:`Observation`): the image, the IMU samples since the last
-frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder angles
-and the time. Ground truth (:class:`GroundTruth`) is kept apart for evaluation and recording;
+What a controller gets (:class:`Observation`): the image (blurred, exposed and noisy as a real
+camera's, :mod:`.image_realism`), the IMU samples since the last frame (gyro and accelerometer
+in the camera's optical frame, with a real part's errors, :mod:`.imu_errors`), the encoder
+angles and the time. Ground truth (:class:`GroundTruth`) is kept apart for evaluation and recording;
 no controller is handed it.
 
 Physics: MuJoCo at 1 kHz. The wearer is kinematic (mocap bodies following the wearer's track);
@@ -13,7 +14,11 @@ first and is ramped over the frame period as the servo's controller does.
 The IMU is derived from the simulated camera trajectory by central differences at the physics
 rate (angular rate from consecutive orientations, specific force from the second difference of
 position minus gravity): MuJoCo's own IMU sensors cannot see a mocap parent's motion, and the
-wearer's motion is what the IMU must sense.
+wearer's motion is what the IMU must sense. The run's IMU errors are applied to that truth.
+
+A run has two seeds: the run's (``seed``: motion variation, sensor noise and errors, the
+operator's clicks; independent streams, see ``*_STREAM``) and the scene's (``scene_seed``:
+the place's textures and layout, by default the run's).
 """
 
 from __future__ import annotations
@@ -90,7 +95,7 @@ class GroundTruth:
 
 
 class Twin:
-    """Wearer + head + workbench in MuJoCo.
+    """Wearer + head + a place (workbench, kitchen counter, office desk) in MuJoCo.
 
     Parameters
     ----------
