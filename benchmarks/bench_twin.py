@@ -16,6 +16,9 @@ from runtime.twin.recorder import record  # noqa: E402
 from wvr.cli import make_twin  # noqa: E402
 
 RECORD_SECONDS = 4.0
+#: Each recording speed is the best of this many runs (the machine is shared: the best run is the
+#: least disturbed one, as timeit takes the minimum).
+REPEATS = 2
 RECORD_SCENARIOS = ("workbench-static", "kitchen-static", "office-static", "kitchen-walk")
 
 
@@ -47,12 +50,13 @@ def render_and_step():
 
 def recording_speed():
     """Frames per second of a whole recording (reset excluded), realism on and off."""
-    print(f"\nrecording speed, {RECORD_SECONDS:g} s per scenario at 640x480 (frames/s, PNGs written; reset excluded):")
+    print(f"\nrecording speed, {RECORD_SECONDS:g} s per scenario at 640x480 (frames/s, PNGs written; reset excluded; "
+          f"best of {REPEATS}):")
     print("| scenario | realism on | realism off | load average |")
     print("|---|---|---|---|")
     for name in RECORD_SCENARIOS:
-        fps = {}
-        for realism in (True, False):
+        fps = {True: 0.0, False: 0.0}
+        for realism in (True, False) * REPEATS:
             twin = make_twin(ideal_imu=not realism, ideal_camera=not realism)
             try:
                 twin.reset(name, seed=0, seconds=0.1)        # build once so the timing below is the run
@@ -70,7 +74,7 @@ def recording_speed():
                 reset = time.perf_counter() - t0
             finally:
                 twin.close()
-            fps[realism] = RECORD_SECONDS * 30 / max(wall - reset, 1e-6)
+            fps[realism] = max(fps[realism], RECORD_SECONDS * 30 / max(wall - reset, 1e-6))
         print(f"| {name} | {fps[True]:.1f} | {fps[False]:.1f} | {os.getloadavg()[0]:.1f} |", flush=True)
 
 
