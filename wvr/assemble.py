@@ -49,10 +49,16 @@ def _camera(camera) -> CameraIntrinsics:
     return camera if isinstance(camera, CameraIntrinsics) else load_camera(camera)
 
 
-def make_twin(head=None, mount=None, camera=None, **twin_options):
+def make_twin(head=None, mount=None, camera=None, ideal_imu: bool = False, ideal_camera: bool = False, **twin_options):
     """A Twin with a head (a HeadGeometry, a head.toml path, or None for the reference head), a
     mount (a Mount, a mount.toml path, or None for the default shoulder mount) and a camera
-    (CameraIntrinsics, a camera.toml path, or None for the default)."""
+    (CameraIntrinsics, a camera.toml path, or None for the default); a real IMU's errors
+    (BMI088) and a real camera's blur, exposure and noise unless ``ideal_imu`` /
+    ``ideal_camera``."""
+    if ideal_imu:
+        twin_options["imu"] = None
+    if ideal_camera:
+        twin_options["camera_sensor"] = None
     from runtime.twin.mount import Mount, default_shoulder_mount, load_mount
     from runtime.twin.twin import Twin
 
@@ -68,10 +74,8 @@ def make_twin(head=None, mount=None, camera=None, **twin_options):
 def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
     """A simulated person's clicks on the twin's current (first) image: the Target the closed
     loop starts from. Reads the twin's truth: the composition root's job, not the runtime's."""
-    try:
-        from runtime.twin.operator import clicked_target as click
-    except ImportError:         # until the twin's operator model lands: the local stand-in
-        from runtime.twin.clicks import clicked_target as click
+    from runtime.twin.operator import clicked_target as click
+
     return click(twin, error_px, np.random.default_rng(seed))
 
 

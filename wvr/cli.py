@@ -261,16 +261,19 @@ def cmd_sim_record(args) -> int:
         if not 0.0 <= args.dim_to <= 1.0:
             raise ValueError(f"--dim-to {args.dim_to}: give the final light level as a fraction 0..1")
         scenario = replace(scenario, dim_to=args.dim_to)
+    for flag, v in (("--seed", args.seed), ("--scene-seed", args.scene_seed)):
+        if v is not None and v < 0:
+            raise ValueError(f"{flag} {v}: give a seed of 0 or more")
+    if not (np.isfinite(args.click_error) and 0.0 <= args.click_error <= 50.0):
+        raise ValueError(f"--click-error {args.click_error}: give the operator's click error in pixels, 0 to 50")
     check_new_recording(args.out)       # before the twin is built: a refusal loses no work
-    twin = make_twin(args.head, args.mount, args.camera)
+    twin = make_twin(args.head, args.mount, args.camera, ideal_imu=args.ideal_imu, ideal_camera=args.ideal_camera)
     try:
-        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth)
+        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth,
+                     scene_seed=args.scene_seed, click_error_px=args.click_error)
     finally:
         twin.close()
-    from kinematics import save_head
-
-    save_head(twin.head, Path(out) / "head.toml")     # a recording carries the head it was made with
-    print(f"recorded {args.scenario} into {out}")
+    print(f"recorded {args.scenario} (seed {args.seed}, scene seed {twin.scene_seed}) into {out}")
     return 0
 
 
@@ -602,7 +605,8 @@ def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, 
     duration, seed, and the head, mount and camera files. ``when`` prefixes their help."""
     p.add_argument("--scenario", required=required, choices=sorted(scenarios), help=f"{when}the twin scenario")
     p.add_argument("--seconds", type=_seconds, help=f"{when}duration, s, above 0 (default: the scenario's)")
-    p.add_argument("--seed", type=int, default=0, help=f"{when}scene seed (textures, object layout, sensor noise)")
+    p.add_argument("--seed", type=int, default=0,
+                   help=f"{when}run seed: motion variation and sensor noise, and the place (textures, layout)")
     p.add_argument("--head", help=f"{when}head.toml (default: the reference head)")
     p.add_argument("--mount", help=f"{when}mount.toml from wvr placement map (default: on the right shoulder)")
     p.add_argument("--camera", help=f"{when}camera.toml (default: 640x480, f = 514.7 px)")
@@ -692,6 +696,16 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.add_argument("--depth", action="store_true",
                      help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
+    rec.add_argument("--scene-seed", type=int, metavar="S",
+                     help="fix the place (textures, object layout) apart from --seed (default: --seed); recordings "
+                          "of scenarios in one place with one scene seed show the same place")
+    rec.add_argument("--ideal-imu", action="store_true",
+                     help="an ideal IMU (white noise only) instead of a BMI088's biases, scale errors and clock offset")
+    rec.add_argument("--ideal-camera", action="store_true",
+                     help="clean renders: no motion blur, auto-exposure or sensor noise")
+    rec.add_argument("--click-error", type=_nonnegative, default=2.5, metavar="PX",
+                     help="how far off the operator clicks the target's corners in target.toml, pixels "
+                          "(default 2.5; 0: the exact projection)")
     _twin_options(rec, SCENARIOS)
     rec.set_defaults(func=cmd_sim_record)
 

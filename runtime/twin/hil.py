@@ -434,7 +434,7 @@ class HilSession:
         save_camera(twin.camera, self.cam_dir / "camera.toml")
         target = self.start_target
         if target is None:
-            from .clicks import clicked_target
+            from .operator import clicked_target
 
             target = clicked_target(twin, self.click_error_px, np.random.default_rng(self.click_seed))
         save_target(target, self.out / "target.toml")

@@ -1,9 +1,10 @@
 """The twin in closed loop, a :class:`runtime.robot.Robot`: ``configure(scenario, seed)`` (or
 ``reset(scenario, seed)``), then ``step(JointCommand)`` per frame.
 
-What a controller gets (:class:`runtime.robot.Observation`): the image, the IMU samples since
-the last frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder
-angles and the time. Ground truth (:class:`runtime.robot.Truth`, through the
+What a controller gets (:class:`runtime.robot.Observation`): the image (blurred, exposed and
+noisy as a real camera's, :mod:`.image_realism`), the IMU samples since the last frame (gyro and
+accelerometer in the camera's optical frame, with a real part's errors, :mod:`.imu_errors`), the
+encoder angles and the time. Ground truth (:class:`runtime.robot.Truth`, through the
 :class:`runtime.robot.TruthSource` methods ``truth()`` and ``landmarks()``) is kept apart for
 evaluation and recording; no controller is handed it.
 
@@ -15,7 +16,11 @@ first and is ramped over the frame period as the servo's controller does.
 The IMU is derived from the simulated camera trajectory by central differences at the physics
 rate (angular rate from consecutive orientations, specific force from the second difference of
 position minus gravity): MuJoCo's own IMU sensors cannot see a mocap parent's motion, and the
-wearer's motion is what the IMU must sense.
+wearer's motion is what the IMU must sense. The run's IMU errors are applied to that truth.
+
+A run has two seeds: the run's (``seed``: motion variation, sensor noise and errors, the
+operator's clicks; independent streams, see ``*_STREAM``) and the scene's (``scene_seed``:
+the place's textures and layout, by default the run's).
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ from kinematics.camera import CameraIntrinsics
 from kinematics.mjcf import R_OPT_MJCAM
 
 from ..robot import JOINTS_MEASURED, ImuSamples, JointCommand, Observation, RobotInfo, Truth
+from .image_realism import CAMERA_SENSOR, CameraSensor, Exposure
+from .imu_errors import BMI088, ImuErrors, ImuSpec
 from .mount import Mount
 from .render import ImageFormation, image_formation
 from .scenarios import Scenario, get_scenario
@@ -41,6 +48,9 @@ from .scene import CARD_BODY, HEAD_PREFIX, OCCLUDER_BODY, TIMESTEP, WEARER_PREFI
 from .wearer import Wearer
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+#: Independent random streams drawn from a run's seed, one per use, so that adding one leaves
+#: the others (and the white sensor noise of ``default_rng(seed)``) as they were.
+MOTION_STREAM, IMU_STREAM, CAMERA_STREAM, CLICK_STREAM = 1, 2, 3, 4
 
 
 def _egl_display_ready() -> None:
@@ -65,7 +75,7 @@ GroundTruth = Truth
 
 
 class Twin:
-    """Wearer + head + workbench in MuJoCo.
+    """Wearer + head + a place (workbench, kitchen counter, office desk) in MuJoCo.
 
     Parameters
     ----------
@@ -74,11 +84,21 @@ class Twin:
         shoulder mount).
     wearer_for : callable (scenario, seconds) -> :class:`Wearer` in world coordinates.
     frame_rate, imu_rate : Hz. gyro_noise, accel_noise, encoder_noise : standard deviations.
+    imu : the IMU's error model (:mod:`runtime.twin.imu_errors`): a constant bias per run, its
+        random walk, white noise at the data sheet's density, scale and cross-axis errors and a
+        clock offset; None gives an ideal IMU with white noise ``gyro_noise``, ``accel_noise``.
+    camera_sensor : what a real camera adds to the renders (:mod:`runtime.twin.image_realism`):
+        motion blur over the exposure, auto-exposure with a lag, shot and read noise on 8 bits;
+        None gives the clean renders.
+    motion_variation : each run's seed moves the body and varies the gaze sweeps a little
+        (:meth:`Scenario.varied`); False runs the scenario exactly as named.
     """
 
     def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, mount: Mount | Callable[[Wearer], Mount],
                  wearer_for: Callable[[Scenario, float], Wearer], frame_rate: float = 30.0, imu_rate: float = 200.0,
-                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0):
+                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0,
+                 imu: ImuSpec | None = BMI088, camera_sensor: CameraSensor | None = CAMERA_SENSOR,
+                 motion_variation: bool = True):
         self.head = head
         self.camera = camera
         self._mount = mount
@@ -87,10 +107,15 @@ class Twin:
         self.steps_per_frame = int(round(1.0 / (frame_rate * TIMESTEP)))
         self.steps_per_imu = int(round(1.0 / (imu_rate * TIMESTEP)))
         self.noise = (gyro_noise, accel_noise, encoder_noise)
+        self.imu_spec = imu
+        self.imu_errors: ImuErrors | None = None
+        self.camera_sensor = camera_sensor
+        self.exposure: Exposure | None = None
+        self.motion_variation = motion_variation
         self.formation: ImageFormation = image_formation(camera)
         self.model = None
         self.renderer = None
-        self._config = None          # (scenario, seed, seconds) for reset() without arguments
+        self._config = None          # (scenario, seed, seconds, scene_seed) for reset() without arguments
 
     # ------------------------------------------------------------------ the Robot seam
     @property
@@ -98,29 +123,41 @@ class Twin:
         return RobotInfo(head=self.head, camera=self.camera, frame_rate=self.frame_rate,
                          speed_limit=self.head.max_speed, name="twin")
 
-    def configure(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None) -> "Twin":
+    def configure(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
+                  scene_seed: int | None = None) -> "Twin":
         """Choose what :meth:`reset` (without arguments, as the Robot protocol calls it) builds."""
-        self._config = (get_scenario(scenario), int(seed), seconds)
+        self._config = (get_scenario(scenario), int(seed), seconds, scene_seed)
         return self
 
     # ------------------------------------------------------------------ set-up
     def reset(self, scenario: str | Scenario | None = None, seed: int | None = None, seconds: float | None = None,
-              q0=None) -> Observation:
+              q0=None, scene_seed: int | None = None) -> Observation:
         """Build the scene for a scenario and seed; returns the first observation (t = 0).
         Without a scenario, the one :meth:`configure` chose.
 
-        ``q0`` : initial joint angles (default: the scripted gaze's first fixation)."""
+        ``seed`` : the run (motion variation, sensor noise). ``scene_seed`` : the place (textures,
+        object layout); default the run's seed. ``q0`` : initial joint angles (default: the
+        scripted gaze's first fixation)."""
         if scenario is None:
             if self._config is None:
                 raise ValueError("the twin has no scenario: call configure(scenario, seed) or reset(scenario, seed)")
-            scenario, seed0, seconds0 = self._config
+            scenario, seed0, seconds0, scene_seed0 = self._config
             seed = seed0 if seed is None else seed
             seconds = seconds0 if seconds is None else seconds
+            scene_seed = scene_seed0 if scene_seed is None else scene_seed
         seed = 0 if seed is None else seed
         sc = get_scenario(scenario)
+        if self.motion_variation:
+            sc = sc.varied(np.random.default_rng([seed, MOTION_STREAM]))
         self.scenario = sc
+        self.seed = seed
+        self.scene_seed = seed if scene_seed is None else int(scene_seed)
         self.seconds = sc.seconds if seconds is None else float(seconds)
         self.rng = np.random.default_rng(seed)
+        self.imu_errors = None if self.imu_spec is None else ImuErrors.draw(
+            self.imu_spec, 1.0 / (self.steps_per_imu * TIMESTEP), np.random.default_rng([seed, IMU_STREAM]))
+        self.exposure = None if self.camera_sensor is None else Exposure(
+            self.camera_sensor, self.formation, 1.0 / self.frame_rate, np.random.default_rng([seed, CAMERA_STREAM]))
         self.wearer = self.wearer_for(sc, self.seconds + 1.0)
         self.mount = self._mount(self.wearer) if callable(self._mount) else self._mount
         self.ms = self.wearer.index(self.mount.segment)
@@ -132,8 +169,8 @@ class Twin:
             c, s = math.cos(sc.body_yaw), math.sin(sc.body_yaw)
             back = np.array([-s, c]) * (thigh + 0.05)       # the body's +y (behind it) in the world
             stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
-        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
-                                  stool=stool, moving_card=sc.moving_card)
+        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.scene,
+                                  self.scene_seed, stool=stool, moving_card=sc.moving_card)
         self._close_renderer()
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
@@ -248,31 +285,77 @@ class Twin:
 
     def _imu_samples(self) -> np.ndarray:
         """IMU rows for every sample time k (multiple of steps_per_imu) with k + 1 recorded."""
+        if self.imu_errors is not None:
+            return self._measured_imu_samples()
         rows = []
         while self._imu_next + 1 <= self.k:
             k = self._imu_next
-            if k == 0:
-                km, kp = 0, 1                     # one-sided at the very start
-            else:
-                km, kp = k - 1, k + 1
-            h = (kp - km) * TIMESTEP
-            w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
-            if k == 0:
-                a_world = np.zeros(3)             # at rest at t = 0
-            else:
-                a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
-            f = self.cam_R[k].T @ (a_world - GRAVITY)
+            w, f = self._true_imu(k)
             g_n, a_n, _ = self.noise
             rows.append([k * TIMESTEP, *(w + self.rng.normal(0, g_n, 3)), *(f + self.rng.normal(0, a_n, 3))])
             self._imu_next += self.steps_per_imu
         return np.array(rows).reshape(-1, 7)
 
+    def _true_imu(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(angular rate (3,) rad/s, specific force (3,) m/s^2) in the optical frame at physics
+        step k, by central differences (needs step k + 1 recorded)."""
+        if k == 0:
+            km, kp = 0, 1                     # one-sided at the very start
+        else:
+            km, kp = k - 1, k + 1
+        h = (kp - km) * TIMESTEP
+        w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
+        if k == 0:
+            a_world = np.zeros(3)             # at rest at t = 0
+        else:
+            a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
+        return w, self.cam_R[k].T @ (a_world - GRAVITY)
+
+    def _measured_imu_samples(self) -> np.ndarray:
+        """IMU rows through the run's error model: each sample stamped k (IMU clock) is the truth
+        at camera time k - time_offset (interpolated between physics steps), then biased,
+        scaled, misaligned and noisy."""
+        e = self.imu_errors
+        stamps, w_true, f_true = [], [], []
+        while True:
+            k = self._imu_next
+            j = max(k - e.time_offset_s / TIMESTEP, 0.0)   # the physics step (fractional) it was taken at
+            j0 = int(math.floor(j))
+            frac = j - j0
+            if j0 + (2 if frac > 1e-9 else 1) > self.k:
+                break
+            w0, f0 = self._true_imu(j0)
+            if frac > 1e-9:
+                w1, f1 = self._true_imu(j0 + 1)
+                w0, f0 = (1 - frac) * w0 + frac * w1, (1 - frac) * f0 + frac * f1
+            stamps.append(k * TIMESTEP)
+            w_true.append(w0)
+            f_true.append(f0)
+            self._imu_next += self.steps_per_imu
+        if not stamps:
+            return np.zeros((0, 7))
+        w, f = e.measure(np.array(stamps), np.array(w_true), np.array(f_true))
+        return np.column_stack([stamps, w, f])
+
     def _observe(self) -> Observation:
         self.renderer.update_scene(self.data, camera=self.cam_id)
-        img = self.formation.form(self.renderer.render())
+        rendered = self.renderer.render()
+        img = self.formation.form(rendered) if self.exposure is None else \
+            self.exposure.image(rendered, self._rotation_over_half_exposure())
         enc = self.data.qpos[self.qadr] + self.rng.normal(0, self.noise[2], 3) if self.noise[2] else self.data.qpos[self.qadr].copy()
         return Observation(t=self.t, image=img, imu=ImuSamples.from_rows(self._imu_samples()), q=np.array(enc),
                            q_source=JOINTS_MEASURED)
+
+    def _rotation_over_half_exposure(self) -> np.ndarray:
+        """(3,) rad: the rotation vector of R_world_cam(t)^T R_world_cam(t - T/2) for the
+        exposure T, from the recorded camera track (scaled from the nearest whole physics step;
+        zero at the start)."""
+        half = 0.5 * self.camera_sensor.exposure_s
+        k0 = max(self.k - max(1, int(round(half / TIMESTEP))), 0)
+        if k0 == self.k:
+            return np.zeros(3)
+        phi = Rotation.from_matrix(self.cam_R[self.k].T @ self.cam_R[k0]).as_rotvec()
+        return phi * (half / ((self.k - k0) * TIMESTEP))
 
     # ------------------------------------------------------------------ truth (evaluation only)
     def render_depth(self) -> np.ndarray:
@@ -294,7 +377,7 @@ class Twin:
 
     def landmarks(self) -> dict[str, np.ndarray]:
         """Named world points of the scene for scoring: the known rectangle's corners (4, 3)."""
-        return {"target_corners": self.scenario.bench.target_corners()}
+        return {"target_corners": self.scenario.scene.target_corners()}
 
     @property
     def ground_truth(self) -> GroundTruth:

@@ -19,7 +19,8 @@ def sequence(tmp_path_factory):
     out = tmp_path_factory.mktemp("seq") / "workbench"
     twin = make_twin()
     try:
-        record(twin, "workbench-static", out, seconds=2.0, seed=4, progress=False)
+        # Exact target pixels: the start-up does not yet refine an operator's clicks (issue 14).
+        record(twin, "workbench-static", out, seconds=2.0, seed=4, progress=False, click_error_px=0.0)
     finally:
         twin.close()
     return out
