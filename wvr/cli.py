@@ -703,7 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="an ideal IMU (white noise only) instead of a BMI088's biases, scale errors and clock offset")
     rec.add_argument("--ideal-camera", action="store_true",
                      help="clean renders: no motion blur, auto-exposure or sensor noise")
-    rec.add_argument("--click-error", type=_nonnegative, default=2.5, metavar="PX",
+    rec.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="how far off the operator clicks the target's corners in target.toml, pixels "
                           "(default 2.5; 0: the exact projection)")
     _twin_options(rec, SCENARIOS)
@@ -721,7 +721,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--init", type=_box, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
-    run.add_argument("--click-error", type=_nonnegative, default=2.5, metavar="PX",
+    run.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
     run.add_argument("--out", required=True, help="output directory")
@@ -734,7 +734,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the IMU stream rig.toml uses (both are served)")
     hil.add_argument("--wait", type=_positive, default=5.0, help="seconds of wall time the world waits for each command")
     hil.add_argument("--linger", type=_nonnegative, default=8.0, help="seconds the board stays up after the run (safe stop)")
-    hil.add_argument("--click-error", type=_nonnegative, default=2.5, metavar="PX",
+    hil.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks target.toml's corners (default 2.5)")
     hil.add_argument("--force", action="store_true", help="reuse an --out folder that holds a HIL session")
     hil.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -100,7 +100,7 @@ def test_the_control_path_runs_with_the_twins_truth_unavailable(twin, tmp_path, 
     target_xyz = sc.bench.target_corners().mean(axis=0)
     twin.reset(sc, seed=0, seconds=1.5)
     start = clicked_target(twin, seed=0)                 # a person's clicks, made before the run
-    assert 1.5 < np.abs(start.uv - clicked_target(twin, error_px=0.0).uv).max() < 2.6
+    assert 1.5 < np.abs(start.uv - clicked_target(twin, error_px=0.0).uv).max() < 3.4   # 0.8-1.2 x 2.5 px, on a 0.5 px grid
 
     allowed = {"on": False}
 
