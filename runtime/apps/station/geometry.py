@@ -7,6 +7,7 @@ Frames: world (SLAM's), optical (x right, y down, z forward). Points m, angles r
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -114,14 +115,19 @@ def ellipse_axes(S: np.ndarray, n_sigma: float = 3.0) -> tuple[np.ndarray, np.nd
     return w, math.atan2(V[1, 0], V[0, 0])
 
 
+@functools.lru_cache(maxsize=4)
+def _unit_sphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(s.vertices), np.asarray(s.faces)
+
+
 def ellipsoid_mesh(centres: np.ndarray, covs: np.ndarray, n_sigma: float = 3.0, subdivisions: int = 1
                    ) -> tuple[np.ndarray, np.ndarray]:
     """One triangle mesh of the ``n_sigma`` ellipsoids of covariances covs (N, 3, 3) m^2 about
     centres (N, 3): vertices (N V, 3), faces (N F, 3)."""
-    import trimesh
-
-    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
-    v0, f0 = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    v0, f0 = _unit_sphere(subdivisions)
     verts, faces = [], []
     for i, (c, C) in enumerate(zip(np.asarray(centres, float).reshape(-1, 3), np.asarray(covs, float).reshape(-1, 3, 3))):
         w, V = np.linalg.eigh(0.5 * (C + C.T))

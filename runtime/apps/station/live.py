@@ -127,11 +127,13 @@ class LiveStation:
     first image (or a callable shown the first observation). truth : the twin (recording only).
     seconds : stop after this much robot time (None: until stopped or the robot's session ends).
     pace : keep the loop no faster than real time (a twin steps as fast as it renders).
+    on_finish : called in the loop's thread when it ends (close a twin there: its renderer's GL
+    context belongs to the thread that made it; a rig's safe stop).
     """
 
     def __init__(self, robot: Robot, start_target: Target | Callable[[Observation], Target],
                  settings: ControllerSettings = ControllerSettings(), truth: TruthSource | None = None,
-                 seconds: float | None = None, pace: bool = True):
+                 seconds: float | None = None, pace: bool = True, on_finish: Callable[[], object] | None = None):
         self.robot = robot
         self.info = robot.info
         self.camera = robot.info.camera
@@ -140,6 +142,8 @@ class LiveStation:
         self.truth = truth
         self.seconds = seconds
         self.pace = pace
+        self.on_finish = on_finish
+        self.finish_result = None
         self.run = StationRun()
         self.loop: ClosedLoop | None = None
         self._actions: queue.Queue[Pending] = queue.Queue()
@@ -235,6 +239,11 @@ class LiveStation:
             self.run.ended = f"fault: {e}"
         finally:
             self.run.ended = self.run.ended or "stopped"
+            if self.on_finish is not None:
+                try:
+                    self.finish_result = self.on_finish()
+                except Exception as e:  # noqa: BLE001 - say it; the recording is still written
+                    self.finish_result = f"failed: {e}"
             self.finished.set()
             with self._cond:
                 self._cond.notify_all()

@@ -25,7 +25,7 @@ _OPERATOR = r"""<!doctype html>
  #log { font-family: monospace; font-size: 12px; white-space: pre-wrap; max-height: 140px; overflow-y: auto; }
 </style></head>
 <body>
-<iframe id="view3d" src="/viser/" title="3D view"></iframe>
+<iframe id="view3d" title="3D view"></iframe>
 <div id="side">
  <div><b>Camera view</b> <span id="status">connecting...</span></div>
  <canvas id="camera" width="640" height="480"></canvas>
@@ -48,6 +48,9 @@ _OPERATOR = r"""<!doctype html>
 <script>
 const TOKEN = __TOKEN__;
 const H = {"Authorization": "Bearer " + TOKEN};
+// "#camera" opens the camera view alone (a slow machine, a measurement of the camera view).
+if (location.hash === "#camera") document.getElementById("view3d").remove();
+else document.getElementById("view3d").src = "/viser/";
 const canvas = document.getElementById("camera"), ctx = canvas.getContext("2d");
 const log = (m) => { const el = document.getElementById("log"); el.textContent = m + "\n" + el.textContent.slice(0, 4000); };
 window.station = {frames: 0, seq: -1, times: [], last: null, clicks: []};
@@ -60,18 +63,35 @@ async function post(kind, body) {
   return j;
 }
 async function pull() {
+  // The camera view as pushed by /api/stream: "WVRF", seq, t_ms, length (u32 big-endian), JPEG.
   for (;;) {
     try {
-      const r = await fetch("/api/frame.jpg?after=" + window.station.seq, {headers: H, cache: "no-store"});
-      if (r.status === 200) {
-        const seq = +r.headers.get("X-Seq");
-        const bmp = await createImageBitmap(await r.blob());
-        if (canvas.width !== bmp.width) { canvas.width = bmp.width; canvas.height = bmp.height; }
-        ctx.drawImage(bmp, 0, 0);
-        window.station.seq = seq; window.station.frames += 1; window.station.times.push(performance.now());
-        if (window.station.times.length > 200) window.station.times.shift();
-      } else if (r.status !== 204) { await new Promise(res => setTimeout(res, 500)); }
-    } catch (e) { await new Promise(res => setTimeout(res, 500)); }
+      const r = await fetch("/api/stream", {headers: H, cache: "no-store"});
+      const reader = r.body.getReader();
+      let buf = new Uint8Array(0);
+      for (;;) {
+        const {done, value} = await reader.read();
+        if (done) break;
+        const b = new Uint8Array(buf.length + value.length); b.set(buf); b.set(value, buf.length); buf = b;
+        let frame = null;
+        while (buf.length >= 16) {
+          const dv = new DataView(buf.buffer, buf.byteOffset);
+          const n = dv.getUint32(12);
+          if (buf.length < 16 + n) break;
+          frame = {seq: dv.getUint32(4), jpg: buf.slice(16, 16 + n)};
+          buf = buf.slice(16 + n);
+        }
+        if (frame) {                       // only the newest of what arrived is drawn
+          const bmp = await createImageBitmap(new Blob([frame.jpg], {type: "image/jpeg"}));
+          if (canvas.width !== bmp.width) { canvas.width = bmp.width; canvas.height = bmp.height; }
+          ctx.drawImage(bmp, 0, 0);
+          const S = window.station;
+          S.seq = frame.seq; S.frames += 1; S.times.push(performance.now());
+          if (S.times.length > 200) S.times.shift();
+        }
+      }
+    } catch (e) {}
+    await new Promise(res => setTimeout(res, 500));
   }
 }
 async function poll() {

@@ -16,6 +16,7 @@ Routes (token: C = the cookie or ``?token=``, B = the bearer header)::
     GET  /wearer?token=T     the wearer's page: the prompt, spoken    (C)
     GET  /api/state          the station's state, JSON                (B)
     GET  /api/frame.jpg      the augmented camera view, newest frame  (B)
+    GET  /api/stream         the camera view pushed frame by frame    (B)
     POST /api/fixate | label | object | mode | stop | reset          (B)
 """
 
@@ -42,6 +43,8 @@ from .view3d import GATE_HEADER
 COOKIE = "wvr_station"
 #: How long a camera-view request waits for a frame newer than the one it has, s.
 FRAME_WAIT_S = 1.0
+#: The camera stream's socket send buffer, bytes: about two frames, so a slow reader holds few.
+STREAM_SNDBUF = 96 * 1024
 
 
 def state_json(s: Snapshot | None, station: LiveStation) -> dict:
@@ -168,6 +171,8 @@ class _Handler(BaseHTTPRequestHandler):
                 return self._json(200, state_json(self.server.station.latest(), self.server.station))
             if path == "/api/frame.jpg":
                 return self._frame(parse_qs(url.query))
+            if path == "/api/stream":
+                return self._stream()
             return self._json(404, {"error": f"no such endpoint {path}"})
         if path in ("/", "/index.html") and self._ok(self._query_token()):
             return self._send(303, b"", "text/plain", {
@@ -213,10 +218,45 @@ class _Handler(BaseHTTPRequestHandler):
         s = st.wait_newer(after, FRAME_WAIT_S)
         if s is None:
             return self._send(204, b"", "image/jpeg")
-        banner = f"t {s.t:5.2f} s  {s.mode}" + ("  E-STOP" if s.estop else "") + (f"  | {s.prompt}" if s.prompt else "")
-        img = camera_view(s.image, st.camera, s.view, list(s.labels), list(s.objects), banner)
-        self._send(200, encode_jpeg(img), "image/jpeg", {"X-Seq": str(s.seq), "X-T": f"{s.t:.4f}",
+        self._send(200, encode_jpeg(self._render(s)), "image/jpeg", {"X-Seq": str(s.seq), "X-T": f"{s.t:.4f}",
                                                          "Access-Control-Expose-Headers": "X-Seq, X-T"})
+
+    def _stream(self) -> None:
+        """The camera view pushed as it comes: a chunked response of frames, each
+        ``b"WVRF" + seq (u32) + t_ms (u32) + length (u32) + JPEG`` (big-endian). Each frame is the
+        newest when the previous one has been written: a slow browser gets fewer frames, never
+        older ones, and the loop never waits for it (a small send buffer keeps the queue short)."""
+        import struct
+
+        st = self.server.station
+        try:
+            self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, STREAM_SNDBUF)
+        except OSError:
+            pass
+        self.send_response(200)
+        self.send_header("Content-Type", "application/octet-stream")
+        self.send_header("Transfer-Encoding", "chunked")
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        seq = -1
+        try:
+            while not st.finished.is_set():
+                s = st.wait_newer(seq, FRAME_WAIT_S)
+                if s is None:
+                    continue
+                seq = s.seq
+                jpg = encode_jpeg(self._render(s))
+                part = b"WVRF" + struct.pack(">III", s.seq, int(round(s.t * 1000)) & 0xFFFFFFFF, len(jpg)) + jpg
+                self.wfile.write(f"{len(part):X}\r\n".encode() + part + b"\r\n")
+                self.wfile.flush()
+            self.wfile.write(b"0\r\n\r\n")
+        except OSError:
+            pass                               # the browser went away
+        self.close_connection = True
+
+    def _render(self, s: Snapshot):
+        banner = f"t {s.t:5.2f} s  {s.mode}" + ("  E-STOP" if s.estop else "") + (f"  | {s.prompt}" if s.prompt else "")
+        return camera_view(s.image, self.server.station.camera, s.view, list(s.labels), list(s.objects), banner)
 
     # ------------------------------------------------------------------ the 3D view (viser)
     def _tunnel(self, upstream_path: str) -> None:

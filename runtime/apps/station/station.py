@@ -47,18 +47,20 @@ def resolve_token(token: str | None) -> tuple[str, bool]:
 class Station:
     """robot, start_target : as for :class:`LiveStation`. host, port : the public address
     (loopback by default; port 0: any free one). token : None makes one. out : the recording's
-    folder (None: no recording). truth : the twin, for groundtruth.txt. seconds : robot time."""
+    folder (None: no recording). truth : the twin, for groundtruth.txt. seconds : robot time.
+    on_finish : run in the loop's thread as it ends (see :class:`LiveStation`)."""
 
     def __init__(self, robot, start_target, host: str = "127.0.0.1", port: int = 8080, token: str | None = None,
                  out: str | Path | None = None, truth=None, seconds: float | None = None,
-                 settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 10.0,
-                 notes: dict | None = None):
+                 settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 4.0,
+                 notes: dict | None = None, on_finish=None):
         self.token, self.token_generated = resolve_token(token)
         self.host = host
         self.loopback = is_loopback(host)
         self.out = record.check_out(out) if out is not None else None
         self.notes = dict(notes or {})
-        self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace)
+        self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace,
+                                on_finish=on_finish)
         self._port = port
         self._view_rate = view_rate_hz
         self.view: View3D | None = None
@@ -77,7 +79,7 @@ class Station:
         self.http.viser_port = self.view.port
         self.http.gate_secret = self.view.gate_secret
         if self.out is not None:
-            record.begin(self.out, {"url": self.public_url, **self.notes})
+            record.begin(self.out, {"address": self.public_url, **self.notes})
         self.http.start()
         self.live.start()
         self.view.start()
@@ -122,7 +124,7 @@ class Station:
                 self.view.close()
         if self.http is not None:
             self.http.close()
-        if self.out is not None:
+        if self.out is not None and self.live.started.is_set():
             self.written = record.finish(self.out, self.live.run, self.notes)
         return self.written
 
@@ -131,3 +133,31 @@ class Station:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def serve(station: Station, on_ready=None, handle_signals: bool = True) -> dict:
+    """Open the station, call ``on_ready(station)``, run until its loop ends (``seconds``, the
+    robot's session, or SIGINT / SIGTERM when ``handle_signals``), then close it (writing the
+    recording). Returns a summary."""
+    import signal
+    import threading
+
+    old = {}
+    if handle_signals and threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, lambda signum, _f: station.stop(f"stopped by {signal.Signals(signum).name}"))
+    try:
+        station.open()
+        if on_ready is not None:
+            on_ready(station)
+        while not station.wait(0.2):
+            pass
+    finally:
+        written = station.close()
+        for sig, h in old.items():
+            signal.signal(sig, h)
+    run = station.live.run
+    if run.fault is not None:
+        raise run.fault
+    return {"ended": run.ended, "frames": len(run.times), "events": len(run.events),
+            "accepted": sum(e.accepted for e in run.events), "labels": len(run.labels), "written": written}

@@ -27,8 +27,13 @@ from .live import LiveStation, Snapshot
 GATE_HEADER = "X-Wvr-Gate"
 MARKER_RADIUS_M = 0.008
 FRUSTUM_SCALE_M = 0.08
-FRUSTUM_IMAGE_WIDTH = 320
+FRUSTUM_IMAGE_WIDTH = 240
 TRAJECTORY_MAX = 600
+#: Re-send the heavy parts of the scene (ellipsoids, the frustum's image, the trajectory) this often.
+HEAVY_EVERY_S = 2.0
+#: A marker is moved when its feature has moved more than this, m.
+MOVE_M = 0.002
+NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
 
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
@@ -41,7 +46,7 @@ def _wxyz(R: np.ndarray) -> np.ndarray:
 class View3D:
     """viser's server on loopback (the station's gate tunnels to it) and its scene and GUI."""
 
-    def __init__(self, station: LiveStation, port: int = 0, rate_hz: float = 10.0):
+    def __init__(self, station: LiveStation, port: int = 0, rate_hz: float = 4.0):
         import viser
 
         self.station = station
@@ -56,12 +61,20 @@ class View3D:
         self._gate_websocket()
         s = self.server.scene
         s.set_up_direction("+z")
+        # Flat lighting, no shadows, no environment map: the operator's machine may render in
+        # software, and every scene change is a full re-render there.
+        s.configure_default_lights(True, cast_shadow=False)
+        s.configure_environment_map(None)
         s.add_frame("/world", axes_length=0.15, axes_radius=0.004)
-        s.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, position=(0.0, 0.0, 0.0))
+        s.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, position=(0.0, 0.0, 0.0), shadow_opacity=0.0)
         self._markers: dict[int, object] = {}
         self._labels: dict[int, object] = {}
         self._objects: dict[int, object] = {}
         self._frustum = None
+        self._target = None
+        self._marker_at: dict[int, np.ndarray] = {}
+        self._had_rays = False
+        self._heavy_t = -np.inf
         self._seq = -1
         self._halt = threading.Event()
         self.updates = 0
@@ -126,7 +139,13 @@ class View3D:
         snap = self.station.latest()
         if snap is None:
             return
-        fid = feature_near_ray(snap.view, ev.ray_origin, ev.ray_direction)
+        o, d = np.asarray(ev.ray_origin, float), np.asarray(ev.ray_direction, float)
+        d = d / np.linalg.norm(d)
+        v = snap.view.xyz - o
+        miss = np.linalg.norm(v - np.outer(v @ d, d), axis=1)
+        if len(miss) and miss.min() <= 1.5 * MARKER_RADIUS_M:
+            return                          # on a marker: its own on_click answers it
+        fid = feature_near_ray(snap.view, o, d)
         if fid is None:
             self.answer.content = "no map feature under that click"
             return
@@ -134,11 +153,14 @@ class View3D:
 
     # ------------------------------------------------------------------ updates
     def start(self) -> "View3D":
-        threading.Thread(target=self._run, name="station-3d", daemon=True).start()
+        self._thread = threading.Thread(target=self._run, name="station-3d", daemon=True)
+        self._thread.start()
         return self
 
     def close(self) -> None:
         self._halt.set()
+        if getattr(self, "_thread", None) is not None:
+            self._thread.join(5.0)
         self.server.stop()
 
     def _run(self) -> None:
@@ -156,55 +178,78 @@ class View3D:
             self._halt.wait(1.0 / self.rate_hz)
 
     def update(self, snap: Snapshot) -> None:
+        """Bring the scene up to ``snap``. Cheap changes (poses, moved markers, rays) every
+        update; heavy ones (the ellipsoid mesh, the frustum's image, the trajectory) at most every
+        ``HEAVY_EVERY_S``: each re-sent mesh or image costs the browser a full re-render, and a
+        software-rendered page spends its time there instead of on the camera view."""
+        import time
+
         s, v = self.server.scene, snap.view
+        now = time.monotonic()
+        heavy = now - self._heavy_t >= HEAVY_EVERY_S
         with self.server.atomic():
             # Features: markers (target points cyan) with their ids, clickable.
             ids = set(int(i) for i in v.ids)
             for fid in list(self._markers):
                 if fid not in ids:
                     self._markers.pop(fid).remove()
+                    self._marker_at.pop(fid, None)
             for fid, p, known in zip(v.ids, v.xyz, v.known):
                 fid = int(fid)
                 h = self._markers.get(fid)
                 if h is None:
                     h = s.add_icosphere(f"/map/f{fid}", radius=MARKER_RADIUS_M, subdivisions=1,
-                                        color=(0, 200, 220) if known else (240, 200, 0), position=p)
+                                        color=(0, 200, 220) if known else (240, 200, 0), position=p,
+                                        **NO_SHADOW)
                     s.add_label(f"/map/f{fid}/id", str(fid), position=(0.0, 0.0, 2 * MARKER_RADIUS_M))
                     h.on_click(lambda ev, fid=fid: self.click_feature(fid))
                     self._markers[fid] = h
-                else:
+                    self._marker_at[fid] = p.copy()
+                elif np.linalg.norm(p - self._marker_at[fid]) > MOVE_M:
                     h.position = p
-            if len(v.ids):
+                    self._marker_at[fid] = p.copy()
+            if heavy and len(v.ids):
                 V, F = ellipsoid_mesh(v.xyz, v.cov)
-                s.add_mesh_simple("/map/ellipsoids", V, F, color=(120, 160, 255), opacity=0.25)
+                s.add_mesh_simple("/map/ellipsoids", V, F, color=(120, 160, 255), opacity=0.25, **NO_SHADOW)
             # Features being initialised: their rays over the depth interval.
-            if len(v.ray_ids):
+            if len(v.ray_ids) or self._had_rays:
                 far = np.minimum(v.ray_depth[:, 1], 6.0)
                 seg = np.stack([v.ray_origin + v.ray_depth[:, :1] * v.ray_direction,
                                 v.ray_origin + far[:, None] * v.ray_direction], axis=1)
-                s.add_line_segments("/map/rays", seg, colors=(255, 120, 0), line_width=1.5)
-            else:
-                s.add_line_segments("/map/rays", np.zeros((0, 2, 3)), colors=(255, 120, 0))
+                s.add_line_segments("/map/rays", seg.reshape(-1, 2, 3), colors=(255, 120, 0), line_width=1.5)
+                self._had_rays = len(v.ray_ids) > 0
             # The camera: trajectory, frustum with the live image, the head's posture.
             tr = snap.trajectory[-TRAJECTORY_MAX:]
-            if len(tr) > 1:
+            if heavy and len(tr) > 1:
                 s.add_line_segments("/trajectory", np.stack([tr[:-1], tr[1:]], axis=1), colors=(255, 255, 255),
                                     line_width=1.5)
             if v.localised:
                 cam = self.station.camera
-                small = cv2.resize(snap.image, (FRUSTUM_IMAGE_WIDTH, int(FRUSTUM_IMAGE_WIDTH * cam.height / cam.width)),
-                                   interpolation=cv2.INTER_AREA)
-                fov = 2 * math.atan(cam.height / (2 * cam.fy))
-                self._frustum = s.add_camera_frustum("/camera", fov=fov, aspect=cam.width / cam.height,
-                                                     scale=FRUSTUM_SCALE_M, image=small, format="jpeg", jpeg_quality=70,
-                                                     wxyz=_wxyz(v.T_world_cam[:3, :3]), position=v.T_world_cam[:3, 3],
-                                                     color=(255, 60, 60) if snap.estop else (60, 220, 60))
+                colour = (255, 60, 60) if snap.estop else (60, 220, 60)
+                if self._frustum is None or heavy:
+                    small = cv2.resize(snap.image, (FRUSTUM_IMAGE_WIDTH, int(FRUSTUM_IMAGE_WIDTH * cam.height / cam.width)),
+                                       interpolation=cv2.INTER_AREA)
+                    fov = 2 * math.atan(cam.height / (2 * cam.fy))
+                    self._frustum = s.add_camera_frustum("/camera", fov=fov, aspect=cam.width / cam.height,
+                                                         scale=FRUSTUM_SCALE_M, image=small, format="jpeg",
+                                                         jpeg_quality=70, wxyz=_wxyz(v.T_world_cam[:3, :3]),
+                                                         position=v.T_world_cam[:3, 3], color=colour, **NO_SHADOW)
+                else:
+                    self._frustum.wxyz = _wxyz(v.T_world_cam[:3, :3])
+                    self._frustum.position = v.T_world_cam[:3, 3]
+                    self._frustum.color = colour
                 if np.isfinite(snap.T_world_joints).all():
                     j = snap.T_world_joints
                     s.add_line_segments("/head", np.stack([j[:-1], j[1:]], axis=1), colors=(255, 60, 200), line_width=4)
             if np.isfinite(snap.target).all():
-                s.add_icosphere("/gaze_target", radius=1.6 * MARKER_RADIUS_M, color=(255, 0, 0), opacity=0.5,
-                                subdivisions=1, position=snap.target)
+                if self._target is None:
+                    self._target = s.add_icosphere("/gaze_target", radius=1.6 * MARKER_RADIUS_M, color=(255, 0, 0),
+                                                   opacity=0.5, subdivisions=1, position=snap.target, **NO_SHADOW)
+                else:
+                    self._target.position = snap.target
+                    self._target.visible = True
+            elif self._target is not None:
+                self._target.visible = False
             # The operator's labels and virtual objects.
             for lb in snap.labels:
                 if lb.id not in self._labels:
@@ -214,10 +259,12 @@ class View3D:
                     continue
                 if ob.kind == "box":
                     self._objects[ob.id] = s.add_box(f"/objects/o{ob.id}", dimensions=tuple(ob.size), position=ob.xyz,
-                                                     color=(0, 220, 220), opacity=0.5)
+                                                     color=(0, 220, 220), opacity=0.5, **NO_SHADOW)
                 else:
                     self._objects[ob.id] = s.add_line_segments(f"/objects/o{ob.id}", ob.edges(), colors=(230, 0, 230),
                                                                line_width=4)
+        if heavy:
+            self._heavy_t = now
         st = f"t **{snap.t:.2f} s** | mode **{snap.mode}** | {len(v.ids)} features, {len(v.ray_ids)} initialising | " \
              f"loop {snap.loop_hz:.1f} Hz" + (" | **E-STOP LATCHED**" if snap.estop else "")
         self.status.content = st
