@@ -212,15 +212,20 @@ class LiveStation:
             loop.start(obs)
             n_frames = None if self.seconds is None else max(1, int(round(self.seconds * self.info.frame_rate)))
             i = 0
+            answered: list = []
             wall0, t0 = time.perf_counter(), obs.t
-            self.started.set()
             while not self._halt.is_set():
-                self._drain(obs)
+                answered = self._drain(obs)
                 truth = self.truth.truth() if self.truth is not None else None
                 cmd = loop.step(obs)
                 if self._estop:
                     cmd = JointCommand(self._q_stop, np.zeros(3), basis_t=None)
                 self._after_step(obs, cmd, truth)
+                # Answered once the period they changed is published: a client that reads the
+                # state after its answer sees the change.
+                for p, res in answered:
+                    p.answer(res)
+                answered = []
                 i += 1
                 if n_frames is not None and i >= n_frames:
                     self.run.ended = self.run.ended or "complete"
@@ -237,6 +242,8 @@ class LiveStation:
         except BaseException as e:  # noqa: BLE001 - a device fault: keep what was recorded, say why
             self.run.fault = e
             self.run.ended = f"fault: {e}"
+            for p, res in locals().get("answered", []):
+                p.answer(res)
         finally:
             self.run.ended = self.run.ended or "stopped"
             if self.on_finish is not None:
@@ -290,14 +297,17 @@ class LiveStation:
         with self._cond:
             self._snap = snap
             self._cond.notify_all()
+        self.started.set()                 # once the first snapshot is out
 
     # ------------------------------------------------------------------ actions
-    def _drain(self, obs: Observation) -> None:
+    def _drain(self, obs: Observation) -> list:
+        """Apply the queued actions; returns them with their results, to be answered."""
+        out = []
         while True:
             try:
                 p = self._actions.get_nowait()
             except queue.Empty:
-                return
+                return out
             try:
                 res = self._apply(p.action, obs)
             except (A.BadAction, ValueError) as e:
@@ -307,7 +317,7 @@ class LiveStation:
             ev = self._record(p, res, obs.t)
             if res.accepted and isinstance(p.action, (A.Fixate, A.SetMode)):
                 self._awaiting_motion.append(ev)
-            p.answer(res)
+            out.append((p, res))
 
     def _record(self, p: Pending, res: A.ActionResult, t: float) -> EventRecord:
         a = p.action

@@ -216,13 +216,13 @@ class View3D:
                 far = np.minimum(v.ray_depth[:, 1], 6.0)
                 seg = np.stack([v.ray_origin + v.ray_depth[:, :1] * v.ray_direction,
                                 v.ray_origin + far[:, None] * v.ray_direction], axis=1)
-                s.add_line_segments("/map/rays", seg.reshape(-1, 2, 3), colors=(255, 120, 0), line_width=1.5)
+                s.add_line_segments("/map/rays", seg.reshape(-1, 2, 3), colors=(255, 120, 0), thickness=1.5, thickness_units="screen")
                 self._had_rays = len(v.ray_ids) > 0
             # The camera: trajectory, frustum with the live image, the head's posture.
             tr = snap.trajectory[-TRAJECTORY_MAX:]
             if heavy and len(tr) > 1:
                 s.add_line_segments("/trajectory", np.stack([tr[:-1], tr[1:]], axis=1), colors=(255, 255, 255),
-                                    line_width=1.5)
+                                    thickness=1.5, thickness_units="screen")
             if v.localised:
                 cam = self.station.camera
                 colour = (255, 60, 60) if snap.estop else (60, 220, 60)
@@ -240,7 +240,7 @@ class View3D:
                     self._frustum.color = colour
                 if np.isfinite(snap.T_world_joints).all():
                     j = snap.T_world_joints
-                    s.add_line_segments("/head", np.stack([j[:-1], j[1:]], axis=1), colors=(255, 60, 200), line_width=4)
+                    s.add_line_segments("/head", np.stack([j[:-1], j[1:]], axis=1), colors=(255, 60, 200), thickness=4, thickness_units="screen")
             if np.isfinite(snap.target).all():
                 if self._target is None:
                     self._target = s.add_icosphere("/gaze_target", radius=1.6 * MARKER_RADIUS_M, color=(255, 0, 0),
@@ -262,7 +262,7 @@ class View3D:
                                                      color=(0, 220, 220), opacity=0.5, **NO_SHADOW)
                 else:
                     self._objects[ob.id] = s.add_line_segments(f"/objects/o{ob.id}", ob.edges(), colors=(230, 0, 230),
-                                                               line_width=4)
+                                                               thickness=4, thickness_units="screen")
         if heavy:
             self._heavy_t = now
         st = f"t **{snap.t:.2f} s** | mode **{snap.mode}** | {len(v.ids)} features, {len(v.ray_ids)} initialising | " \
