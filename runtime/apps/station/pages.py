@@ -54,8 +54,9 @@ else document.getElementById("view3d").src = "/viser/";
 const canvas = document.getElementById("camera"), ctx = canvas.getContext("2d");
 const log = (m) => { const el = document.getElementById("log"); el.textContent = m + "\n" + el.textContent.slice(0, 4000); };
 window.station = {frames: 0, seq: -1, times: [], last: null, clicks: []};
-async function post(kind, body) {
-  const r = await fetch("/api/" + kind, {method: "POST", headers: {...H, "Content-Type": "application/json"},
+async function post(kind, body, source) {
+  const r = await fetch("/api/" + kind, {method: "POST", headers: {...H, "Content-Type": "application/json",
+                                                                   "X-Wvr-Source": source || "page"},
                                          body: JSON.stringify(body || {})});
   const j = await r.json();
   window.station.last = {status: r.status, ...j};
@@ -113,9 +114,9 @@ canvas.addEventListener("click", (e) => {
   const uv = [(e.clientX - r.left) * canvas.width / r.width, (e.clientY - r.top) * canvas.height / r.height];
   const tool = document.querySelector("input[name=tool]:checked").value;
   window.station.clicks.push({tool, uv, at: performance.now()});
-  if (tool === "fixate") post("fixate", {uv});
-  else if (tool === "label") post("label", {uv, text: document.getElementById("text").value});
-  else post("object", {uv, kind: tool});
+  if (tool === "fixate") post("fixate", {uv}, "camera-view");
+  else if (tool === "label") post("label", {uv, text: document.getElementById("text").value}, "camera-view");
+  else post("object", {uv, kind: tool}, "camera-view");
 });
 document.querySelectorAll("button[data-mode]").forEach(b => b.onclick = () => post("mode", {mode: b.dataset.mode}));
 document.getElementById("stop").onclick = () => post("stop", {reason: "operator's page"});

@@ -41,6 +41,8 @@ from .pages import operator_page, refused_page, wearer_page
 from .view3d import GATE_HEADER
 
 COOKIE = "wvr_station"
+#: What events.csv may name as an action's source (the page's camera view says which it is).
+SOURCES = ("api", "camera-view", "page")
 #: How long a camera-view request waits for a frame newer than the one it has, s.
 FRAME_WAIT_S = 1.0
 #: The camera stream's socket send buffer, bytes: about two frames, so a slow reader holds few.
@@ -202,7 +204,8 @@ class _Handler(BaseHTTPRequestHandler):
         except (ValueError, UnicodeDecodeError) as e:
             reason = str(e) if isinstance(e, A.BadAction) else f"the body is not JSON: {e}"
             return self._json(422, {"accepted": False, "reason": reason})
-        res = self.server.station.request(action, "api")
+        source = self.headers.get("X-Wvr-Source", "api")
+        res = self.server.station.request(action, source if source in SOURCES else "api")
         if res.accepted:
             return self._json(200, res.as_json())
         code = 409 if res.reason.startswith("stopped") else 422
