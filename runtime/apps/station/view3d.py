@@ -75,6 +75,7 @@ class View3D:
         self._marker_at: dict[int, np.ndarray] = {}
         self._had_rays = False
         self._heavy_t = -np.inf
+        self._framed = False
         self._seq = -1
         self._halt = threading.Event()
         self.updates = 0
@@ -91,6 +92,25 @@ class View3D:
         self.stop_button.on_click(lambda _: self._submit(A.Stop("operator's 3D view")))
         self.reset_button.on_click(lambda _: self._submit(A.Reset()))
         s.on_click()(self._background_click)
+
+    def _frame_the_map(self, v) -> None:
+        """Once SLAM has its target: the grid on the target's plane and the view (initial, and
+        every client's) from behind and above the camera, looking at the target."""
+        c = v.xyz[v.known].mean(axis=0)
+        back = v.T_world_cam[:3, 3] - c
+        back[2] = 0.0
+        back = back / max(np.linalg.norm(back), 1e-9)
+        eye = c + 0.6 * back + np.array([0.0, 0.0, 0.9])      # above the bench, on the wearer's side
+        self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, position=(c[0], c[1], c[2]),
+                                   shadow_opacity=0.0)
+        self.server.initial_camera.position = eye
+        self.server.initial_camera.look_at = c
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        for client in self.server.get_clients().values():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = eye
+            client.camera.look_at = c
+        self._framed = True
 
     def _gate_websocket(self) -> None:
         """Close every websocket that did not come through the gate. viser's transport layer
@@ -265,6 +285,8 @@ class View3D:
                                                                thickness=4, thickness_units="screen")
         if heavy:
             self._heavy_t = now
+        if not self._framed and v.localised and v.known.any():
+            self._frame_the_map(v)
         st = f"t **{snap.t:.2f} s** | mode **{snap.mode}** | {len(v.ids)} features, {len(v.ray_ids)} initialising | " \
              f"loop {snap.loop_hz:.1f} Hz" + (" | **E-STOP LATCHED**" if snap.estop else "")
         self.status.content = st
