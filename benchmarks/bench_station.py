@@ -43,11 +43,11 @@ class ReplayRobot:
     realistic load (SLAM on real twin frames, the controller, the overlays) at a camera's rate."""
 
     def __init__(self, seq_dir: Path):
-        from kinematics import load_head
+        from kinematics import load_head, reference_head
         from runtime.sequence import open_sequence
 
         self.seq = open_sequence(seq_dir)
-        head = load_head(seq_dir / "head.toml")
+        head = load_head(seq_dir / "head.toml") if (seq_dir / "head.toml").exists() else reference_head()
         rate = 1.0 / float(np.median(np.diff(self.seq.timestamps)))
         self.info = RobotInfo(head, self.seq.camera, rate, head.max_speed, name="replay")
         self.images = [self.seq.frame(i).image for i in range(len(self.seq))]
@@ -289,8 +289,7 @@ def bench_label(cases=(("walk", 0), ("walk", 2), ("walk-ahead", 0)), seconds=6.0
               f"worst {a.max():.2f} (target within 2 px)", flush=True)
 
 
-if __name__ == "__main__":
-    bench_camera_view("twin workbench-static (live)", lambda: _twin_station("workbench-static", 0, 120.0))
+def bench_replay():
     with tempfile.TemporaryDirectory() as tmp:
         from runtime.twin.recorder import record
 
@@ -302,6 +301,15 @@ if __name__ == "__main__":
         robot = ReplayRobot(seq)
         bench_camera_view("replayed twin recording served at 30 Hz",
                           lambda: Station(robot, robot.seq.target, port=0, seconds=None))
-    bench_latency()
-    bench_saccades()
-    bench_label()
+
+
+PARTS = {"camera": lambda: bench_camera_view("twin workbench-static (live)",
+                                             lambda: _twin_station("workbench-static", 0, 120.0)),
+         "replay": bench_replay, "latency": bench_latency, "saccades": bench_saccades, "label": bench_label}
+
+if __name__ == "__main__":
+    import sys
+
+    chosen = [a for a in sys.argv[1:] if a in PARTS] or list(PARTS)      # e.g. bench_station.py latency label
+    for name in chosen:
+        PARTS[name]()
