@@ -32,15 +32,16 @@ from runtime.apps.station import Station  # noqa: E402
 from runtime.apps.station.browser import headless_browser  # noqa: E402
 from runtime.apps.station.client import StationClient  # noqa: E402
 from runtime.apps.station.geometry import world_to_pixels  # noqa: E402
-from runtime.robot import ImuSamples, Observation, RobotInfo, SessionEnded  # noqa: E402
+from runtime.robot import ImuSamples, Observation, RobotInfo  # noqa: E402
 from runtime.twin.scenarios import get_scenario  # noqa: E402
 from wvr.assemble import clicked_target, make_twin  # noqa: E402
 
 
 class ReplayRobot:
-    """A twin recording served as a camera at its own rate (30 Hz): images and IMU as recorded;
-    the joints report what they were commanded (the recording's head does not follow them). A
-    realistic load (SLAM on real twin frames, the controller, the overlays) at a camera's rate."""
+    """A twin recording served as a camera at its own rate (30 Hz), forwards then backwards and
+    so on (no IMU: it cannot be played backwards); the joints report what they were commanded
+    (the recording's head does not follow them). A realistic load (SLAM on real twin frames, the
+    controller, the overlays) at a camera's rate, for as long as needed."""
 
     def __init__(self, seq_dir: Path):
         from kinematics import load_head, reference_head
@@ -54,14 +55,11 @@ class ReplayRobot:
         self.i, self.q = 0, np.zeros(3)
 
     def _obs(self):
-        t = float(self.seq.timestamps[self.i])
-        imu = ImuSamples()
-        log = self.seq.imu
-        if log is not None and self.i > 0:
-            t0 = float(self.seq.timestamps[self.i - 1])
-            k = (log.t > t0) & (log.t <= t)
-            imu = ImuSamples(log.t[k], log.gyro[k], log.accel[k])
-        return Observation(t, self.images[self.i], imu, self.q.copy(), q_source="commanded")
+        n = len(self.images)
+        j = self.i % (2 * n - 2)
+        j = j if j < n else 2 * n - 2 - j
+        return Observation(self.i / self.info.frame_rate, self.images[j], ImuSamples(), self.q.copy(),
+                           q_source="commanded")
 
     def reset(self):
         self.i = 0
@@ -70,8 +68,6 @@ class ReplayRobot:
 
     def step(self, command):
         self.i += 1
-        if self.i >= len(self.images):
-            raise SessionEnded("the recording ended")
         self.q = command.q.copy()
         return self._obs()
 

@@ -252,10 +252,11 @@ class ClosedLoop:
         self._take_over("saccade")
         self._external_target = p.copy()
 
-    def set_mode(self, mode: str, image: np.ndarray | None = None, region=None) -> None:
+    def set_mode(self, mode: str, image: np.ndarray | None = None, region=None, method: str | None = None) -> None:
         """Switch the controller's mode from outside: ``hold``, ``stabilise`` (Path A, the present
         attitude), ``body`` (Path B, the present direction) or ``track`` (a 2D tracker on ``region``
-        (x, y, w, h) of ``image``, by default the image's central quarter). Fixation is
+        (x, y, w, h) of ``image``, by default the image's central quarter; ``method`` the 2D
+        tracker, by default the task's). Fixation is
         :meth:`saccade_to`. Raises ValueError or GazeRefused with the reason."""
         if mode == "hold":
             self.ctl.hold()
@@ -269,7 +270,7 @@ class ClosedLoop:
             h, w = image.shape[:2]
             region = (w / 2 - w / 8, h / 2 - h / 8, w / 4, h / 4) if region is None else region
             self.region_uv = region_polygon(region)
-            self.tracker = make_tracker(self.task.method, image, tuple(np.asarray(region, float)))
+            self.tracker = make_tracker(method or self.task.method, image, tuple(np.asarray(region, float)))
         else:
             raise ValueError(f"mode {mode!r} cannot be set from outside; use hold, stabilise, body or track "
                              f"(fixation: saccade_to a point)")

@@ -46,8 +46,8 @@ class StillRobot:
         head = reference_head()
         self.info = RobotInfo(head, CAM, rate, head.max_speed, name="still")
         rng = np.random.default_rng(0)
-        tex = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (5, 5), 1.5)
-        self.image = np.dstack([tex] * 3)
+        # Coloured texture: SLAM matches its grey level, the operator's colour tracker its hue.
+        self.image = cv2.GaussianBlur((rng.random((480, 640, 3)) * 255).astype(np.uint8), (5, 5), 1.5)
         uv = world_to_pixels(CAM, _T_world_cam(), TARGET_XYZ)
         for p in uv:                                 # dark corners on the texture, for the templates
             cv2.circle(self.image, tuple(int(round(c)) for c in p), 4, (0, 0, 0), -1)
@@ -318,3 +318,28 @@ def test_the_recording_is_marked_incomplete_while_running_and_written_at_the_end
     assert rows[0].startswith("t,wall_time,source,action") and "refused" in rows[1]
     assert not list(tmp_path.glob("*.part"))
     assert len((tmp_path / "trajectory.tum").read_text().strip().splitlines()) >= 40
+
+
+def test_modes_switch_from_outside_and_what_cannot_run_is_refused():
+    # A fresh station: the stand-in's image never moves with its joints, so after the other
+    # tests its head's posture says little about where "up" is.
+    robot = StillRobot()
+    station = Station(robot, robot.target, port=0, token="secret-token-123", seconds=600).open()
+    station.wait_started()
+    try:
+        _modes(station)
+    finally:
+        station.close()
+
+
+def _modes(station):
+    wait_periods(station, 3)
+    for mode in ("body", "track", "hold"):
+        code, payload, _ = call(station, "POST", "/api/mode", {"mode": mode})
+        assert code == 200 and json.loads(payload)["mode"] == mode, payload
+        wait_periods(station, 2)
+        assert state(station)["mode"] == mode
+    # Path A holds an attitude from the IMU: this robot has none, so it is refused, with why.
+    code, payload, _ = call(station, "POST", "/api/mode", {"mode": "stabilise"})
+    assert code == 422 and "attitude" in json.loads(payload)["reason"]
+    assert state(station)["mode"] == "hold"

@@ -35,6 +35,8 @@ from .slam_view import MapView, empty_view, map_view
 
 #: A wearer prompt stays on the pages this long after it was last said.
 PROMPT_SHOW_S = 4.0
+#: The 2D tracker the operator's track mode uses (on the image's centre when it is chosen).
+TRACK_METHOD = "meanshift"
 #: A command counts as motion once some joint is commanded faster than this (rad/s).
 MOTION_RAD_S = math.radians(0.5)
 
@@ -393,7 +395,9 @@ class LiveStation:
             return A.ActionResult(True, "", t, {"mode": "saccade", **detail})
         if isinstance(act, A.SetMode):
             try:
-                loop.set_mode(act.mode, image=obs.image)
+                # CamShift starts at once; the hyperplane tracker learns for seconds, which
+                # would hold the loop.
+                loop.set_mode(act.mode, image=obs.image, method=TRACK_METHOD)
             except GazeRefused as e:
                 return A.ActionResult(False, f"unreachable: {e}", t)
             return A.ActionResult(True, "", t, {"mode": act.mode})

@@ -103,6 +103,9 @@ class View3D:
         eye = c + 0.6 * back + np.array([0.0, 0.0, 0.9])      # above the bench, on the wearer's side
         self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, position=(c[0], c[1], c[2]),
                                    shadow_opacity=0.0)
+        k = v.xyz[v.known]
+        self.server.scene.add_line_segments("/target", np.stack([k, np.roll(k, -1, axis=0)], axis=1),
+                                            colors=(0, 200, 220), thickness=2, thickness_units="screen")
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = c
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
