@@ -204,6 +204,7 @@ class LiveStation:
 
     # ------------------------------------------------------------------ the loop thread
     def _run(self) -> None:
+        answered: list = []
         try:
             obs = self.robot.reset()
             target = self.start_target(obs) if callable(self.start_target) else self.start_target
@@ -214,7 +215,6 @@ class LiveStation:
             loop.start(obs)
             n_frames = None if self.seconds is None else max(1, int(round(self.seconds * self.info.frame_rate)))
             i = 0
-            answered: list = []
             wall0, t0 = time.perf_counter(), obs.t
             while not self._halt.is_set():
                 answered = self._drain(obs)
@@ -244,7 +244,7 @@ class LiveStation:
         except BaseException as e:  # noqa: BLE001 - a device fault: keep what was recorded, say why
             self.run.fault = e
             self.run.ended = f"fault: {e}"
-            for p, res in locals().get("answered", []):
+            for p, res in answered:
                 p.answer(res)
         finally:
             self.run.ended = self.run.ended or "stopped"

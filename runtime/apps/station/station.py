@@ -52,7 +52,7 @@ class Station:
 
     def __init__(self, robot, start_target, host: str = "127.0.0.1", port: int = 8080, token: str | None = None,
                  out: str | Path | None = None, truth=None, seconds: float | None = None,
-                 settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 4.0,
+                 settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 2.0,
                  notes: dict | None = None, on_finish=None):
         self.token, self.token_generated = resolve_token(token)
         self.host = host

@@ -30,7 +30,7 @@ FRUSTUM_SCALE_M = 0.08
 FRUSTUM_IMAGE_WIDTH = 240
 TRAJECTORY_MAX = 600
 #: Re-send the heavy parts of the scene (ellipsoids, the frustum's image, the trajectory) this often.
-HEAVY_EVERY_S = 2.0
+HEAVY_EVERY_S = 4.0
 #: A marker is moved when its feature has moved more than this, m.
 MOVE_M = 0.002
 NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
