@@ -97,6 +97,14 @@ class StationServer(ThreadingHTTPServer):
         self.shutdown()
         self.server_close()
 
+    def handle_error(self, request, client_address) -> None:
+        """A browser that went away mid-reply is no error; anything else is printed as usual."""
+        import sys
+
+        if isinstance(sys.exc_info()[1], (BrokenPipeError, ConnectionResetError)):
+            return
+        super().handle_error(request, client_address)
+
 
 def _pipe(src: socket.socket, dst: socket.socket) -> None:
     try:

@@ -118,8 +118,8 @@ class View3D:
     def _gate_websocket(self) -> None:
         """Close every websocket that did not come through the gate. viser's transport layer
         (``viser.infra``) runs its connect callbacks before it streams the scene's backlog; the
-        request's headers are on its connection object (not public API: checked here, and the
-        check fails closed)."""
+        request's headers are on its connection object (not public API: if it cannot be read,
+        the callback raises and viser drops the connection: the check fails closed)."""
         ws = self.server._websock_server
         secret = self.gate_secret.encode()
 
@@ -127,12 +127,12 @@ class View3D:
             import hmac
 
             c = getattr(ws, "_live_connections", {}).get(conn.client_id)
-            given = None
             try:
                 given = c.request.headers.get(GATE_HEADER)
             except AttributeError:
-                pass
-            if c is not None and (given is None or not hmac.compare_digest(given.encode(), secret)):
+                self.refused += 1
+                raise ConnectionRefusedError("the station cannot check this connection's origin; refused") from None
+            if given is None or not hmac.compare_digest(given.encode(), secret):
                 self.refused += 1
                 await c.close(1008, "open the station's own address with its token")
 
