@@ -509,7 +509,7 @@ def cmd_station(args) -> int:
 
     def ready(st):
         print(f"station: open {st.url}", flush=True)
-        print(f"station: the wearer's page is {st.public_url}wearer (add ?token= with the same token)", flush=True)
+        print(f"station: the wearer's page is {st.public_url}wearer, opened with the same token", flush=True)
         if not st.loopback:
             print(f"station: listening on {args.host}, beyond this machine: keep the token to yourself", flush=True)
 

@@ -269,8 +269,8 @@ class ClosedLoop:
                 raise ValueError("track needs the current image to learn its target from")
             h, w = image.shape[:2]
             region = (w / 2 - w / 8, h / 2 - h / 8, w / 4, h / 4) if region is None else region
-            self.region_uv = region_polygon(region)
             self.tracker = make_tracker(method or self.task.method, image, tuple(np.asarray(region, float)))
+            self.region_uv = region_polygon(region)
         else:
             raise ValueError(f"mode {mode!r} cannot be set from outside; use hold, stabilise, body or track "
                              f"(fixation: saccade_to a point)")
