@@ -13,7 +13,8 @@ export VTK_DEFAULT_OPENGL_WINDOW := vtkEGLRenderWindow
 # Two cores: keep BLAS from oversubscribing them under pytest and Dask.
 export OMP_NUM_THREADS ?= 1
 
-DEB_PACKAGES := libegl1 libopengl0 libgl1 libgles2 libegl-mesa0 libgl1-mesa-dri libglx-mesa0
+# chromium: Debian's browser, driven by Playwright in the station's tests (never `playwright install`).
+DEB_PACKAGES := libegl1 libopengl0 libgl1 libgles2 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 chromium
 
 .PHONY: setup deb demo test bench clean
 
@@ -23,7 +24,7 @@ setup: deb $(STAMP)
 deb:
 	@missing=$$(for p in $(DEB_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q "ok installed" || echo $$p; done); \
 	if [ -n "$$missing" ]; then \
-	  echo "installing Debian packages for offscreen rendering: $$missing"; \
+	  echo "installing Debian packages (offscreen rendering, the station's test browser): $$missing"; \
 	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
 	fi

@@ -592,6 +592,74 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_station(args) -> int:
+    import math
+
+    from runtime.apps.station.record import check_out
+    from runtime.apps.station.station import Station, resolve_token, serve
+    from runtime.gaze import ControllerSettings
+
+    resolve_token(args.token)                   # bad input is refused before anything starts
+    if args.out:
+        check_out(args.out)
+    if not 0 <= args.port <= 65535:
+        raise ValueError(f"--port {args.port} is not a port number (0-65535; 0: any free one)")
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
+    if (args.scenario is None) == (args.rig is None):
+        raise ValueError("wvr station needs one of --scenario NAME (the twin) or --rig rig.toml (the hardware)")
+    if args.scenario is not None:
+        from runtime.twin.scenarios import get_scenario
+        from wvr.assemble import clicked_target
+
+        sc = get_scenario(args.scenario)
+        robot = make_twin(args.head, args.mount, args.camera)
+        robot.configure(sc, seed=args.seed, seconds=args.seconds)
+        start, truth, seconds = (lambda obs: clicked_target(robot, args.click_error, args.seed)), robot, \
+            (args.seconds if args.seconds is not None else sc.seconds)
+        notes = {"scenario": sc.name, "seed": args.seed}
+    else:
+        from runtime.drivers.rig import load_rig
+        from runtime.sequence import load_target
+        from wvr.assemble import make_rig
+
+        cfg = load_rig(args.rig)
+        if cfg.start_target is None:
+            raise ValueError(f"{args.rig}: the station starts SLAM from a known target: add [start] target = "
+                             "\"target.toml\" (known points and their pixels in the first image)")
+        start, truth, seconds = load_target(cfg.start_target), None, args.seconds
+        robot = make_rig(cfg)
+        notes = {"rig": str(Path(args.rig).resolve())}
+
+    def finish():
+        # In the loop's thread, as it ends: the rig's safe stop (hold, home slowly); the twin's
+        # renderer closed in the thread that made it.
+        out = robot.safe_stop(home=True) if args.rig is not None else None
+        robot.close()
+        return out
+
+    station = Station(robot, start, host=args.host, port=args.port, token=args.token, out=args.out, truth=truth,
+                      seconds=seconds, settings=settings, notes=notes, on_finish=finish)
+
+    def ready(st):
+        print(f"station: open {st.url}", flush=True)
+        print(f"station: the wearer's page is {st.public_url}wearer, opened with the same token", flush=True)
+        if not st.loopback:
+            print(f"station: listening on {args.host}, beyond this machine: keep the token to yourself", flush=True)
+
+    try:
+        s = serve(station, on_ready=ready)
+    finally:
+        if not station.live.started.is_set() and not station.live.finished.is_set():
+            robot.close()                       # it never ran (a busy port): nothing to stop
+    if args.rig is not None:
+        print(f"station: safe stop: {station.live.finish_result}")
+    print(f"station: {s['ended']}; {s['frames']} frames, {s['events']} actions ({s['accepted']} accepted), "
+          f"{s['labels']} labels")
+    if args.out:
+        print(f"wrote {args.out}: {', '.join(s['written'])}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
@@ -806,6 +874,22 @@ def build_parser() -> argparse.ArgumentParser:
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
     ev2.set_defaults(func=cmd_eval)
+
+    stn = sub.add_parser("station", help="the remote operator's web station: live 3D view and camera view, "
+                         "click to saccade and fixate, labels, JSON API")
+    stn.add_argument("--rig", help="rig.toml: run the hardware (instead of --scenario)")
+    _twin_options(stn, SCENARIOS, required=False, when="twin: ")
+    stn.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback; any other needs "
+                     "the token, which is always required)")
+    stn.add_argument("--port", type=int, default=8080, help="the page and the API (default 8080; the 3D view's "
+                     "viser listens on loopback on the next port up)")
+    stn.add_argument("--token", help="the access token (default: a new random one, printed once)")
+    stn.add_argument("--out", help="folder for the recording when the station stops (trajectory.tum, events.csv, "
+                     "labels.toml; groundtruth.txt on the twin)")
+    stn.add_argument("--limit", type=float, default=30.0, help="controlled-motion limit, deg/s (default 30)")
+    stn.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="twin: how far off the simulated person clicks the target's corners (default 2.5)")
+    stn.set_defaults(func=cmd_station)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")
     demo.add_argument("--out", required=True, help="output directory")

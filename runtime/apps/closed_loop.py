@@ -212,6 +212,11 @@ class ClosedLoop:
         self._q_prev = None
         self._imu_pending = []
         self._basis_t: float | None = None
+        # Set once someone outside the task (an operator) changes the mode: from then on the
+        # task's own schedule (its first target, the saccade dwell) no longer runs.
+        self._kind: str = task.kind
+        self._external_target: np.ndarray | None = None
+        self.external = False
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -234,6 +239,49 @@ class ClosedLoop:
     @property
     def prompts(self):
         return self.ctl.prompts if self.ctl is not None else []
+
+    # -- hooks for a caller outside the task (the operator's station): mode changes between steps
+    def saccade_to(self, p_world) -> None:
+        """Saccade to a world point (3,) m at the controlled-motion limit, then fixate it; the
+        task's own schedule stops. Raises GazeRefused (with the wearer's prompt) when it is out of
+        reach, ValueError when it is not a finite point. Needs SLAM (a task that uses it)."""
+        if self.slam is None:
+            raise ValueError(f"saccades need SLAM's pose; this loop runs task {self.task.kind} without SLAM")
+        p = np.asarray(p_world, float).reshape(-1)
+        self.ctl.saccade(p)             # validates (finite, 3) and refuses the unreachable
+        self._take_over("saccade")
+        self._external_target = p.copy()
+
+    def set_mode(self, mode: str, image: np.ndarray | None = None, region=None, method: str | None = None) -> None:
+        """Switch the controller's mode from outside: ``hold``, ``stabilise`` (Path A, the present
+        attitude), ``body`` (Path B, the present direction) or ``track`` (a 2D tracker on ``region``
+        (x, y, w, h) of ``image``, by default the image's central quarter; ``method`` the 2D
+        tracker, by default the task's). Fixation is
+        :meth:`saccade_to`. Raises ValueError or GazeRefused with the reason."""
+        if mode == "hold":
+            self.ctl.hold()
+        elif mode == "stabilise":
+            self.ctl.stabilise()
+        elif mode == "body":
+            self.ctl.body()
+        elif mode == "track":
+            if image is None:
+                raise ValueError("track needs the current image to learn its target from")
+            h, w = image.shape[:2]
+            region = (w / 2 - w / 8, h / 2 - h / 8, w / 4, h / 4) if region is None else region
+            self.tracker = make_tracker(method or self.task.method, image, tuple(np.asarray(region, float)))
+            self.region_uv = region_polygon(region)
+        else:
+            raise ValueError(f"mode {mode!r} cannot be set from outside; use hold, stabilise, body or track "
+                             f"(fixation: saccade_to a point)")
+        if mode != "track":
+            self.tracker = None
+        self._take_over(mode)
+        self._external_target = None
+
+    def _take_over(self, kind: str) -> None:
+        self.external = True
+        self._kind = kind
 
     def _set_target(self, i: int, t: float) -> None:
         task = self.task
@@ -262,7 +310,7 @@ class ClosedLoop:
         lost = bool(slam is not None and slam.stats and slam.stats[-1].lost)
         T_est = slam.T_world_cam() if slam is not None and not lost else None
         v_est = slam.state.v.copy() if T_est is not None else None
-        if i == 1:
+        if i == 1 and not self.external:
             # The first IMU rows arrive with the first step, and the mount's pose is known once
             # the controller has stepped once: the task starts then.
             if task.kind == "stabilise":
@@ -273,7 +321,7 @@ class ClosedLoop:
                 ctl.body()
             elif task.kind in ("fixate", "saccade"):
                 self._set_target(0, obs.t)
-        if task.kind == "saccade" and i > 1 and obs.t >= (self._current + 1) * task.dwell_s:
+        if task.kind == "saccade" and not self.external and i > 1 and obs.t >= (self._current + 1) * task.dwell_s:
             self._current += 1
             self._set_target(self._current % len(task.targets), obs.t)
         poly, track_lost = np.full((4, 2), np.nan), False
@@ -289,24 +337,28 @@ class ClosedLoop:
                     ctl.hold()                # a lost target is said (tracking.csv), not chased
         # What the command rests on, for the robot's safety watchdog: the newest SLAM pose, IMU
         # sample or tracker fix (the task's own estimate; none for Path B).
-        if task.uses_slam:
+        kind = self._kind
+        if kind in ("fixate", "saccade", "hold") and slam is not None:
             if T_est is not None:
                 self._basis_t = obs.t
-        elif task.kind == "stabilise":
+        elif kind == "stabilise":
             if len(obs.imu):
                 self._basis_t = float(obs.imu.t[-1])
-        elif task.kind == "track":
+        elif kind == "track":
             if i == 0 or (obs.fresh_image and not track_lost):
                 self._basis_t = obs.t
         else:
             self._basis_t = None
         cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
         if cmd.landed:
-            self.log.events.append({"t": obs.t, "event": "landed", "target": self._current % len(task.targets)})
+            self.log.events.append({"t": obs.t, "event": "landed", "target": "external" if self.external
+                                    else self._current % len(task.targets)})
         q = np.asarray(obs.q, float)
         qd_meas = (q - self._q_prev) / self.dt if i else np.zeros(3)
         self._q_prev = q.copy()
         tgt = task.targets[self._current % len(task.targets)] if len(task.targets) else np.full(3, np.nan)
+        if self.external:
+            tgt = self._external_target if self._external_target is not None else np.full(3, np.nan)
         err = math.degrees(cmd.error_rad) if np.isfinite(cmd.error_rad) else float("nan")
         self.log.rows.append(LoopRow(
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,
