@@ -1,12 +1,12 @@
 """New features (paper, section 4.1): Shi-Tomasi corners (OpenCV) in image regions that hold no
-feature yet, each stored with its 15 x 15 appearance template."""
+feature yet, each stored with its appearance template (15 x 15 at 640 x 480)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from .search import HALF, extract_template
+from .search import TEMPLATE_SIZE, extract_template
 
 
 def grey(image: np.ndarray) -> np.ndarray:
@@ -33,11 +33,13 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     return pts.reshape(-1, 2).astype(float)
 
 
-def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
-    """[(uv (2,), template (15, 15))] for up to n new corners (corners too near the border skipped)."""
+def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: int = TEMPLATE_SIZE,
+                 **kw) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(uv (2,), template (size, size))] for up to n new corners (corners too near the border
+    skipped)."""
     out = []
-    for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), HALF + 1), **kw):
-        t = extract_template(image_grey, uv)
+    for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), size // 2 + 1), **kw):
+        t = extract_template(image_grey, uv, size)
         if t is not None and t.std() > 2.0:   # a flat patch cannot be matched
             out.append((np.round(uv), t))
     return out
