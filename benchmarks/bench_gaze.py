@@ -23,9 +23,9 @@ import numpy as np  # noqa: E402
 
 from kinematics import forward_kinematics, reference_head  # noqa: E402
 from runtime.gaze import RateQP  # noqa: E402
-from runtime.twin.loop import Task, run_closed_loop  # noqa: E402
+from runtime.apps.closed_loop import Task  # noqa: E402
 from runtime.twin.scenarios import get_scenario  # noqa: E402
-from wvr.cli import make_twin  # noqa: E402
+from wvr.assemble import make_twin, run_on_twin  # noqa: E402
 
 
 def bench_qp(n=1000):
@@ -62,7 +62,7 @@ def main():
             sc = get_scenario("walk-ahead")
             target = sc.bench.target_corners().mean(axis=0)
             t0 = time.time()
-            s = run_closed_loop(twin, sc, Task("fixate", target[None]), f"{d}/fix", progress=False)
+            s = run_on_twin(twin, sc, Task("fixate", target[None]), f"{d}/fix", progress=False)
             print(f"fixation, walk-ahead {s['seconds']:.1f} s: RMS {s['fixation_rms_deg']:.2f} deg, peak "
                   f"{s['fixation_peak_deg']:.2f} deg after 1 s; SLAM ATE {100 * s['ate_rmse_m']:.2f} cm (max "
                   f"{100 * s['ate_max_m']:.2f}), lost {s['lost_frames']} frames; peak joint rate {s['peak_cmd_rate_deg_s']:.1f} "
@@ -74,7 +74,7 @@ def main():
             # is acquired (< 1 deg) until the controller reports it out of reach (a prompt).
             target = np.array([1.6, -0.75, 0.86])
             t0 = time.time()
-            s = run_closed_loop(twin, "walk", Task("fixate", target[None]), f"{d}/walk", progress=False)
+            s = run_on_twin(twin, "walk", Task("fixate", target[None]), f"{d}/walk", progress=False)
             err = np.array(s["fixation_error_deg"])
             t = np.arange(len(err)) / 30.0
             start = t[np.argmax(err < 1.0)]
@@ -89,7 +89,7 @@ def main():
             a = sc.bench.target_corners()[0]
             b = sc.bench.target_corners().mean(axis=0) + np.array([0.45, 0.1, 0.0])
             t0 = time.time()
-            s = run_closed_loop(twin, sc, Task("saccade", np.array([a, b]), dwell_s=2.0), f"{d}/sac", seconds=7.0,
+            s = run_on_twin(twin, sc, Task("saccade", np.array([a, b]), dwell_s=2.0), f"{d}/sac", seconds=7.0,
                                 progress=False)
             for k, L in enumerate(s["landings"]):
                 what = (f"landed in {L['duration_s']:.2f} s, error {L['error_deg']:.2f} deg (max {L['error_after_deg']:.2f} "
@@ -100,7 +100,7 @@ def main():
                   f"{s['lost_frames']} frames ({time.time() - t0:.0f} s)", flush=True)
 
             t0 = time.time()
-            s = run_closed_loop(twin, "walk", Task("stabilise"), f"{d}/pathA", progress=False)
+            s = run_on_twin(twin, "walk", Task("stabilise"), f"{d}/pathA", progress=False)
             print(f"Path A, walk {s['seconds']:.1f} s, IMU only: pitch max {s['pitch_max_dev_deg']:.2f} deg (RMS "
                   f"{s['pitch_rms_dev_deg']:.2f}), roll max {s['roll_max_dev_deg']:.2f} deg (RMS {s['roll_rms_dev_deg']:.2f}) "
                   f"from the start ({time.time() - t0:.0f} s)", flush=True)

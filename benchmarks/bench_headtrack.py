@@ -21,7 +21,8 @@ import numpy as np  # noqa: E402
 
 from kinematics.camera import CameraIntrinsics, default_camera  # noqa: E402
 from runtime.vision2d.headscene import render_head_sequence, smooth_head_motion  # noqa: E402
-from runtime.vision2d.headtrack import HeadTracker, rotation_error_rad  # noqa: E402
+from kinematics.transforms import rotation_angle  # noqa: E402
+from runtime.vision2d.headtrack import HeadTracker  # noqa: E402
 
 
 def bench_sequence(label, camera, distance_m, n=200, seed=0):
@@ -36,7 +37,7 @@ def bench_sequence(label, camera, distance_m, n=200, seed=0):
     ok = np.array([not r.lost for r in results])
     est = np.array([r.ypr for r in results])
     err = np.degrees(est - ypr)[ok]
-    geo = np.degrees(rotation_error_rad(np.stack([r.T_cam_head[:3, :3] for r in results])[ok], T_true[ok, :3, :3]))
+    geo = np.degrees(rotation_angle(np.stack([r.T_cam_head[:3, :3] for r in results])[ok], T_true[ok, :3, :3]))
     t_err = np.linalg.norm(np.stack([r.translation_m for r in results])[ok] - T_true[ok, :3, 3], axis=1)
     rms = np.sqrt(np.mean(err ** 2, axis=0))
     print(f"{label}: {n} frames {cam.width}x{cam.height} at {distance_m:g} m "

@@ -11,14 +11,14 @@ import time
 from placement.body import make_body
 from placement.mapping import placement_map
 from placement.motions import default_poses
-from placement.rays import Occluder
+from kinematics.rays import RayCaster
 from placement.scores import camera_points, fov_fraction
 
 
 def main():
     body = make_body()
     pose = default_poses(body)["walking"]
-    occ = Occluder(body.posed_vertices(pose), body.faces)
+    occ = RayCaster(body.posed_vertices(pose), body.faces)
     cams, _ = camera_points(body, pose, 0.02)
     fov_fraction(occ, cams[:50], 2048)  # warm up
     c0, w0 = time.process_time(), time.perf_counter()
@@ -31,8 +31,8 @@ def main():
         t0 = time.perf_counter()
         s = placement_map(d, body, progress=False)
         dt = time.perf_counter() - t0
-    print(f"full default map ({s['polygons']} places, {s['rays']} rays, {len(s['poses'])} poses, "
-          f"{len(s['motions'])} motions, maps and zones): {dt:.1f} s")
+    print(f"full default map ({s.polygons} places, {s.rays} rays, {len(s.poses)} poses, "
+          f"{len(s.motions)} motions, maps and zones): {dt:.1f} s")
 
 
 if __name__ == "__main__":

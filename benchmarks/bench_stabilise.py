@@ -85,10 +85,10 @@ def main():
                                              ("vision + IMU, 160x120", True, settings, (160, 120))):
                 st = stabilise_sequence(seq_dir, tmp / f"{name}-{label}", fovea=fovea, use_imu=use_imu,
                                         progress=False, settings=s)
-                print(f"  {label:<22} {st['rotation_rms_error_deg']:>11.4f} {st['rotation_max_error_deg']:>8.4f} "
-                      f"{st['raw_motion_px']:>7.3f} {st['fovea_motion_px']:>8.3f} {st['motion_ratio']:>6.2f} "
-                      f"{st['motion_ratio_unclamped']:>6.2f} {st['clamped']:>7d} {st['flagged']:>7d} "
-                      f"{st['processing_fps']:>6.1f}", flush=True)
+                print(f"  {label:<22} {st.rotation_rms_error_deg:>11.4f} {st.rotation_max_error_deg:>8.4f} "
+                      f"{st.raw_motion_px:>7.3f} {st.fovea_motion_px:>8.3f} {st.motion_ratio:>6.2f} "
+                      f"{st.motion_ratio_unclamped:>6.2f} {st.clamped:>7d} {st.flagged:>7d} "
+                      f"{st.processing_fps:>6.1f}", flush=True)
             seq = open_sequence(seq_dir)
             e_par, par = parallax_only_error(seq, settings)
             print("  (ratio* = over frame pairs where the fovea was not clamped)")

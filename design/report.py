@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +27,54 @@ def front_hypervolume(F_front: np.ndarray, seed: int = 0) -> tuple[float, float]
     return hypervolume_mc(Fn, 1.1, HV_SAMPLES, seed)
 
 
-def write_outputs(result: SweepResult, spec: SweepSpec, out: Path, pictures: bool = True) -> dict:
-    """Write the sweep's files into ``out``; returns a summary dict (front size, chosen, HV...)."""
+@dataclass(frozen=True)
+class ChosenDesign:
+    """The design the decision picked from the front.
+
+    index : its row in the sweep's evaluations (SweepResult order). decision : how it was chosen
+    (the method and weights, in words). criteria, reference_criteria : the seven criteria of the
+    chosen and of the reference head, by name (sweep_file.CRITERIA). hypervolume, hypervolume_se :
+    the front's normalised Monte Carlo hypervolume and its standard error. head_path : its
+    chosen_head.toml.
+    """
+
+    index: int
+    decision: str
+    criteria: dict[str, float]
+    reference_criteria: dict[str, float]
+    hypervolume: float
+    hypervolume_se: float
+    head_path: Path
+
+
+@dataclass(frozen=True)
+class DesignOutputs:
+    """What a sweep's outputs hold: counts, the chosen design (None when nothing is feasible)
+    and the files written into ``folder``.
+
+    evaluations : designs in the sweep. evaluated, reused : computed in this run, and taken from
+    the log of a resumed one. feasible : designs meeting every constraint. front_size : the
+    non-dominated feasible ones. pictures : kind -> file name of the plots written.
+    """
+
+    folder: Path
+    algorithm: str
+    evaluations: int
+    evaluated: int
+    reused: int
+    feasible: int
+    front_size: int
+    chosen: ChosenDesign | None
+    pictures: dict[str, str]
+
+    @property
+    def report_path(self) -> Path:
+        return self.folder / "report.md"
+
+
+def write_outputs(result: SweepResult, spec: SweepSpec, out: Path, pictures: bool = True) -> DesignOutputs:
+    """Write the sweep's files into ``out`` (front.csv, report.md and, when a design is feasible,
+    chosen_head.toml, head.xml and the plots); returns what they hold."""
     out = Path(out)
     feasible = result.feasible
     front = non_dominated(result.F, feasible)
@@ -38,30 +85,31 @@ def write_outputs(result: SweepResult, spec: SweepSpec, out: Path, pictures: boo
         for i in idx:
             w.writerow([int(result.batch[i]), *map(repr, map(float, result.X[i])), *map(repr, map(float, result.F[i])),
                         *map(repr, map(float, result.G[i]))])
-    summary = {"evaluations": len(result.F), "feasible": int(feasible.sum()), "front_size": int(len(idx)),
-               "algorithm": result.algorithm}
-    ref_crit, ref_cons = reference_scores(result.ctx)
+    ref_crit, _ = reference_scores(result.ctx)
+    outputs = DesignOutputs(folder=out, algorithm=result.algorithm, evaluations=len(result.F),
+                            evaluated=result.evaluated, reused=result.reused, feasible=int(feasible.sum()),
+                            front_size=int(len(idx)), chosen=None, pictures={})
     if len(idx) == 0:
-        summary["chosen"] = None
-        (out / "report.md").write_text(_report(spec, summary, None, ref_crit, None, None))
-        return summary
+        (out / "report.md").write_text(_report(spec, outputs))
+        return outputs
     k, how = choose_design(result.F[idx], spec.decision_method, spec.decision_weights)
-    chosen = idx[k]
-    head = head_from_variables(result.X[chosen], spec, name=f"{spec.name}-chosen")
+    i_chosen = int(idx[k])
+    head = head_from_variables(result.X[i_chosen], spec, name=f"{spec.name}-chosen")
     save_head(head, out / "chosen_head.toml")
     (out / "head.xml").write_text(build_mjcf(head))
     hv, hv_se = front_hypervolume(result.F[idx])
-    summary.update(chosen_index=int(chosen), decision=how, hypervolume=hv, hypervolume_se=hv_se,
-                   chosen_criteria=dict(zip(CRITERIA, map(float, result.F[chosen]))),
-                   reference_criteria={k: float(v) for k, v in ref_crit.items()})
+    chosen = ChosenDesign(index=i_chosen, decision=how, criteria=dict(zip(CRITERIA, map(float, result.F[i_chosen]))),
+                          reference_criteria={c: float(v) for c, v in ref_crit.items()}, hypervolume=hv,
+                          hypervolume_se=hv_se, head_path=out / "chosen_head.toml")
     pics = {}
     if pictures:
         pics["parallel"] = _parallel_coordinates(result.F[idx], k, out / "front_parallel.png")
-        pics["scatter"] = _scatter_matrix(result.F, feasible, front, chosen, out / "front_scatter.png")
+        pics["scatter"] = _scatter_matrix(result.F, feasible, front, i_chosen, out / "front_scatter.png")
         from kinematics.picture import render_head
         pics["head"] = render_head(head, out / "chosen_head.png", np.radians([[0, 0, 0], [35, 50, 20], [-30, -60, -25]])).name
-    (out / "report.md").write_text(_report(spec, summary, result.F[chosen], ref_crit, how, pics))
-    return summary
+    outputs = replace(outputs, chosen=chosen, pictures=pics)
+    (out / "report.md").write_text(_report(spec, outputs))
+    return outputs
 
 
 def _parallel_coordinates(F: np.ndarray, chosen: int, path: Path) -> str:
@@ -114,24 +162,25 @@ def _scatter_matrix(F, feasible, front, chosen, path: Path) -> str:
     return path.name
 
 
-def _report(spec, summary, chosen_F, ref_crit, how, pics) -> str:
+def _report(spec: SweepSpec, o: DesignOutputs) -> str:
+    c = o.chosen
     lines = [f"# Design sweep `{spec.name}`", "",
-             f"- Algorithm: {summary['algorithm']}; evaluations: {summary['evaluations']}; "
-             f"feasible: {summary['feasible']}; non-dominated (front): {summary['front_size']}",
+             f"- Algorithm: {o.algorithm}; evaluations: {o.evaluations}; "
+             f"feasible: {o.feasible}; non-dominated (front): {o.front_size}",
              "- Files: [evaluations.csv](evaluations.csv), [front.csv](front.csv), [sweep.toml](sweep.toml)"
-             + (", [chosen_head.toml](chosen_head.toml), [head.xml](head.xml)" if chosen_F is not None else ""), ""]
-    if chosen_F is None:
+             + (", [chosen_head.toml](chosen_head.toml), [head.xml](head.xml)" if c is not None else ""), ""]
+    if c is None:
         lines += ["No feasible design was found: widen the bounds or raise the budget.", ""]
         return "\n".join(lines)
-    lines += [f"- Hypervolume of the front: {summary['hypervolume']:.4f} ± {summary['hypervolume_se']:.4f} "
+    lines += [f"- Hypervolume of the front: {c.hypervolume:.4f} ± {c.hypervolume_se:.4f} "
               f"(objectives normalised to [0, 1] between the front's ideal and nadir, reference point 1.1 in each, "
               f"so at most 1.1^7 = {1.1 ** 7:.4f}; Monte Carlo with {HV_SAMPLES:,} samples, ± one standard error)",
-              f"- Decision: {how}", "",
+              f"- Decision: {c.decision}", "",
               "| criterion | chosen | reference head |", "|---|---|---|"]
-    for name, v in zip(CRITERIA, chosen_F):
-        lines.append(f"| `{name}` | {v:.6g} | {ref_crit[name]:.6g} |")
+    for name in CRITERIA:
+        lines.append(f"| `{name}` | {c.criteria[name]:.6g} | {c.reference_criteria[name]:.6g} |")
     lines.append("")
-    if pics:
-        lines += [f"![parallel coordinates]({pics['parallel']})", "", f"![scatter matrix]({pics['scatter']})", "",
-                  f"![chosen head]({pics['head']})", ""]
+    if o.pictures:
+        lines += [f"![parallel coordinates]({o.pictures['parallel']})", "",
+                  f"![scatter matrix]({o.pictures['scatter']})", "", f"![chosen head]({o.pictures['head']})", ""]
     return "\n".join(lines)

@@ -5,6 +5,8 @@ Files in the output folder while a sweep runs:
 ``sweep.toml``        the sweep as run (a resume refuses a different one)
 ``evaluations.csv``   every design evaluated, appended and flushed as each finishes
 ``state.pkl``         the search algorithm after the last completed batch (atomic rename)
+``INCOMPLETE``        present until the run ends (kinematics.outdir), with ``.wvr-lock``, which
+                      keeps a second run out of the folder while this one writes it
 
 A resume restores the algorithm from ``state.pkl``; because every algorithm is deterministic
 for its saved random state, it asks the same next batch again, and any design of that batch
@@ -17,6 +19,7 @@ from __future__ import annotations
 import csv
 import os
 import pickle
+import re
 
 import cloudpickle
 from dataclasses import dataclass
@@ -24,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+
+from kinematics.outdir import output_folder
 
 from .problem import EvaluationContext, HeadLayoutProblem, evaluate_design
 from .search import RandomVariation, nsga3
@@ -114,22 +119,22 @@ class _Log:
 
     def __init__(self, path: Path, next_id: int):
         new = not path.exists()
-        self.f = open(path, "a", newline="")
-        self.w = csv.writer(self.f)
+        self.file = open(path, "a", newline="")
+        self.writer = csv.writer(self.file)
         if new:
-            self.w.writerow(COLUMNS)
+            self.writer.writerow(COLUMNS)
         self.next_id = next_id
 
     def add(self, batch: int, index: int, algorithm: str, x, F, G) -> None:
         feasible = bool(np.all(G <= 0))
-        self.w.writerow([self.next_id, batch, index, algorithm, *map(repr, map(float, x)), *map(repr, map(float, F)),
-                         *map(repr, map(float, G)), int(feasible)])
-        self.f.flush()
-        os.fsync(self.f.fileno())
+        self.writer.writerow([self.next_id, batch, index, algorithm, *map(repr, map(float, x)),
+                              *map(repr, map(float, F)), *map(repr, map(float, G)), int(feasible)])
+        self.file.flush()
+        os.fsync(self.file.fileno())
         self.next_id += 1
 
     def close(self) -> None:
-        self.f.close()
+        self.file.close()
 
 
 def _evaluate_many(X: np.ndarray, ctx, client, on_done) -> None:
@@ -149,19 +154,40 @@ def _evaluate_many(X: np.ndarray, ctx, client, on_done) -> None:
         on_done(futures[fut], F, G)
 
 
+def check_client_options(workers: int | None = None, scheduler: str | None = None) -> None:
+    """Refuse, before any work, a worker count or scheduler address that cannot be used."""
+    if workers is not None and scheduler is not None:
+        raise ValueError("give either workers (a local Dask cluster) or a scheduler address, not both")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"workers = {workers!r}: give at least 1 worker process (or none, to evaluate here)")
+    if scheduler is not None and not re.fullmatch(r"(tcp|tls)://[^\s:/]+:\d{1,5}", str(scheduler)):
+        raise ValueError(f"scheduler {scheduler!r}: give a Dask scheduler address as tcp://HOST:PORT, "
+                         f"e.g. tcp://127.0.0.1:8786")
+
+
+#: Seconds to wait for a remote scheduler before giving up with a one-line error.
+SCHEDULER_TIMEOUT_S = 5.0
+
+
 def open_client(workers: int | None = None, scheduler: str | None = None):
-    """A dask.distributed Client: a LocalCluster of ``workers`` processes, or an existing scheduler."""
+    """A dask.distributed Client: a LocalCluster of ``workers`` processes, or an existing scheduler
+    (None when neither is given: evaluate in this process). Bad options and a scheduler that does
+    not answer within SCHEDULER_TIMEOUT_S raise ValueError."""
+    check_client_options(workers, scheduler)
     if workers is None and scheduler is None:
         return None
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
-        return Client(scheduler)
-    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536. Setting it at all turns
-    # off glibc's adaptive mmap threshold, so every large temporary array of the voxel sweep
-    # becomes a fresh mapping and its page faults halve a worker's evaluation rate (measured:
-    # 5.8 against 10.5 per second). Start the workers with the plain process's allocator, and
-    # one BLAS thread each, as the nanny does.
+        try:
+            return Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S:g}s")
+        except (OSError, TimeoutError) as e:
+            raise ValueError(f"scheduler {scheduler}: no Dask scheduler answered within {SCHEDULER_TIMEOUT_S:g} s "
+                             f"({type(e).__name__}); start one ('dask scheduler') or check the address") from None
+    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which turns off glibc's
+    # adaptive mmap threshold and makes every large temporary of the voxel sweep a fresh mapping
+    # (page faults halve a worker's rate; benchmarks/NOTES.md). Start the workers with the plain
+    # process's allocator, and one BLAS thread each, as the nanny does.
     import dask
 
     env = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
@@ -170,20 +196,9 @@ def open_client(workers: int | None = None, scheduler: str | None = None):
     return Client(cluster)
 
 
-def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, seed: int | None = None,
-              algorithm: str | None = None, resume: bool = False, client=None, progress: bool = True,
-              ctx: EvaluationContext | None = None) -> SweepResult:
-    """Run (or resume) a sweep into ``out``; returns every evaluation of the sweep.
-
-    ``client`` is a dask.distributed Client (see :func:`open_client`) or None for this process.
-    Results do not depend on the client: evaluations are pure functions of the design vector,
-    and their results are placed by index, not by arrival.
-    """
+def check_sweep_folder(spec: SweepSpec, out: Path, seed: int, algorithm: str, resume: bool) -> None:
+    """Refuse, before anything is written, a folder the sweep cannot start or resume in."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    budget = spec.evaluations if evaluations is None else int(evaluations)
-    seed = spec.seed if seed is None else int(seed)
-    algorithm = spec.algorithm if algorithm is None else algorithm
     state_path, log_path, spec_path = out / "state.pkl", out / "evaluations.csv", out / "sweep.toml"
     if resume:
         if not state_path.exists():
@@ -195,12 +210,46 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
         if state.seed != seed or state.algorithm_name != algorithm:
             raise SweepStateError(f"{out}: started with seed {state.seed} and algorithm {state.algorithm_name!r}; "
                                   "resume with the same ones")
-        ctx = ctx or EvaluationContext.from_spec(spec)
+    elif state_path.exists() or log_path.exists():
+        raise SweepStateError(f"{out} already holds a sweep; use --resume to continue it, or choose a new --out")
+
+
+def run_options(spec: SweepSpec, evaluations: int | None, seed: int | None,
+                algorithm: str | None) -> tuple[int, int, str]:
+    """(budget, seed, algorithm): the run's options, the sweep file's where not given; checked."""
+    budget = spec.evaluations if evaluations is None else evaluations
+    if isinstance(budget, bool) or int(budget) != budget or budget < 1:
+        raise SweepStateError(f"evaluations = {budget!r}: give a budget of at least 1 evaluation (e.g. 200)")
+    algorithm = spec.algorithm if algorithm is None else algorithm
+    if algorithm not in ("nsga3", "random"):
+        raise SweepStateError(f"unknown algorithm {algorithm!r}; use 'nsga3' or 'random'")
+    return int(budget), spec.seed if seed is None else int(seed), algorithm
+
+
+def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, seed: int | None = None,
+              algorithm: str | None = None, resume: bool = False, client=None, progress: bool = True,
+              ctx: EvaluationContext | None = None) -> SweepResult:
+    """Run (or resume) a sweep into ``out``; returns every evaluation of the sweep.
+
+    ``client`` is a dask.distributed Client (see :func:`open_client`) or None for this process.
+    Results do not depend on the client: evaluations are pure functions of the design vector,
+    and their results are placed by index, not by arrival. The folder is written inside
+    :func:`kinematics.outdir.output_folder` (locked against a second run, INCOMPLETE until done).
+    """
+    out = Path(out)
+    budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume)):
+        return _run(spec, out, budget, seed, algorithm, resume, client, progress, ctx)
+
+
+def _run(spec: SweepSpec, out: Path, budget: int, seed: int, algorithm: str, resume: bool, client, progress: bool,
+         ctx: EvaluationContext | None) -> SweepResult:
+    state_path, log_path, spec_path = out / "state.pkl", out / "evaluations.csv", out / "sweep.toml"
+    ctx = ctx or EvaluationContext.from_spec(spec)
+    if resume:
+        state: SweepState = pickle.loads(state_path.read_bytes())
         _attach_context(state.algorithm, ctx)
     else:
-        if state_path.exists() or log_path.exists():
-            raise SweepStateError(f"{out} already holds a sweep; use --resume to continue it, or choose a new --out")
-        ctx = ctx or EvaluationContext.from_spec(spec)
         state = SweepState(spec.digest(), algorithm, seed, make_algorithm(algorithm, ctx, seed))
         spec_path.write_text(dump_spec(spec))
         _write_atomic(state_path, cloudpickle.dumps(state))
@@ -249,8 +298,10 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
     for r in rows:
         by_key[(int(r["batch"]), int(r["index"]))] = r
     rows = [by_key[k] for k in sorted(by_key)]
-    return SweepResult(X=np.array([r["x"] for r in rows]), F=np.array([r["F"] for r in rows]),
-                       G=np.array([r["G"] for r in rows]), batch=np.array([int(r["batch"]) for r in rows]),
+    return SweepResult(X=np.array([r["x"] for r in rows]).reshape(-1, len(VARIABLES)),
+                       F=np.array([r["F"] for r in rows]).reshape(-1, len(CRITERIA)),
+                       G=np.array([r["G"] for r in rows]).reshape(-1, len(CONSTRAINTS)),
+                       batch=np.array([int(r["batch"]) for r in rows], dtype=int),
                        ctx=ctx, algorithm=algorithm, reused=reused, evaluated=evaluated)
 
 

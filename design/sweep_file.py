@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kinematics import SERVO_CATALOGUE
-from kinematics.tomlfile import read_toml
+from kinematics.tomlfile import brief, read_toml
 
 #: The seven criteria, all minimised, named exactly so in every output (paper, section 2).
 CRITERIA = (
@@ -97,13 +97,15 @@ _SECTIONS = {
 }
 
 
-def _num(v, where: str, positive: bool = False, integer: bool = False) -> float:
+def _num(v, where: str, positive: bool = False, integer: bool = False, nonnegative: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise SweepFileError(f"{where} = {v!r} must be a finite number")
+        raise SweepFileError(f"{where} = {brief(v)} must be a finite number")
     if integer and int(v) != v:
         raise SweepFileError(f"{where} = {v!r} must be a whole number")
     if positive and v <= 0:
         raise SweepFileError(f"{where} = {v!r} must be positive")
+    if nonnegative and v < 0:
+        raise SweepFileError(f"{where} = {v!r} must be >= 0")
     return int(v) if integer else float(v)
 
 
@@ -180,10 +182,12 @@ def _spec_from_dict(d: dict) -> SweepSpec:
         evaluations=_num(s["evaluations"], "[sweep].evaluations", positive=True, integer=True),
         seed=_num(s["seed"], "[sweep].seed", integer=True), algorithm=algorithm,
         partitions=_num(s["partitions"], "[sweep].partitions", positive=True, integer=True),
-        clearance_m=_num(s["clearance_m"], "[sweep].clearance_m"),
+        # A negative clearance would let parts overlap and make every design feasible.
+        clearance_m=_num(s["clearance_m"], "[sweep].clearance_m", nonnegative=True),
         camera_mass_kg=_num(d["camera"]["mass_kg"], "[camera].mass_kg", positive=True),
         camera_size_m=cam_size,
-        bracket_density_kg_m=_num(d["bracket"]["linear_density_kg_m"], "[bracket].linear_density_kg_m"),
+        bracket_density_kg_m=_num(d["bracket"]["linear_density_kg_m"], "[bracket].linear_density_kg_m",
+                                  nonnegative=True),
         bracket_size_m=_num(d["bracket"]["size_m"], "[bracket].size_m", positive=True),
         bounds=tuple(bounds),
         voxel_m=_num(d["criteria"]["voxel_m"], "[criteria].voxel_m", positive=True),

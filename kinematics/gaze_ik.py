@@ -228,6 +228,11 @@ def gaze_at_point(head: HeadGeometry, p_mount, up_mount=(0.0, 0.0, 1.0), q_curre
         if q is not None:
             candidates.append(q)
             vertical = vert
+    far = np.linalg.norm(p - c0) > 100.0 * max(float(np.linalg.norm(c0)), 0.01)
+    if not candidates and far and not seed.reachable and seed.required:
+        # Newton found nothing near out-of-range seeds of a far point (one along the elevation
+        # axis is a gimbal lock); from far away the direction's blocking joint is the reason.
+        return seed
     too_close = "the point is too close to the head for the optic axis to pass through it in front of the camera"
     return _finish(head, candidates, q_cur, lambda pose: _unit(p - pose.p_mount_cam), vertical, too_close)
 
@@ -271,10 +276,9 @@ def _polish_point(head, p, up, q, q3_hold, cone, tol, max_iter):
             return None, vertical
         if np.max(np.abs(r)) < tol:
             break
-        try:
-            step = np.linalg.solve(J, r)
-        except np.linalg.LinAlgError:
-            return None, vertical
+        # Least squares, not solve: a far point along the elevation axis makes J singular (that
+        # joint no longer moves the point), and the minimum-norm step still converges.
+        step = np.linalg.lstsq(J, r, rcond=None)[0]
         # Damp steps larger than ~0.3 rad so Newton stays in the seed's basin.
         n = np.linalg.norm(step)
         q = q - step * (min(1.0, 0.3 / n) if n > 0 else 1.0)

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from .tomlfile import read_toml
+from .tomlfile import brief, read_toml
 from .servo_models import SERVO_CATALOGUE, ServoModel, servo_from_dict
 
 JOINT_NAMES: tuple[str, str, str] = ("elevation", "pan", "cyclotorsion")
@@ -223,7 +223,10 @@ class HeadGeometry:
             _check_vec(p.size_m, f"{where}.size_m")
             if min(p.size_m) <= 0:
                 raise HeadFileError(f"{where}.size_m = {list(p.size_m)} must have positive edge lengths (metres)")
-            if not math.isfinite(p.mass_kg) or p.mass_kg < 0:
+            if not math.isfinite(p.mass_kg):
+                raise HeadFileError(f"{where}.mass_kg = {p.mass_kg} is not a finite number; give the mass in kg "
+                                    f"(a 6 g servo is 0.006)")
+            if p.mass_kg < 0:
                 raise HeadFileError(f"{where}.mass_kg = {p.mass_kg} is negative; masses are >= 0 kg (a 6 g servo is 0.006)")
         for link in JOINT_NAMES:
             if sum(p.mass_kg for p in self.parts_on(link)) <= 0:
@@ -292,9 +295,9 @@ def _vec(v, where: str, n: int = 3) -> tuple[float, ...]:
     try:
         arr = [float(x) for x in v]
     except (TypeError, ValueError):
-        raise HeadFileError(f"{where} = {v!r} must be a list of {n} numbers") from None
+        raise HeadFileError(f"{where} = {brief(v)} must be a list of {n} numbers") from None
     if len(arr) != n:
-        raise HeadFileError(f"{where} = {v!r} must have {n} numbers, not {len(arr)}")
+        raise HeadFileError(f"{where} = {brief(v)} must have {n} numbers, not {len(arr)}")
     return tuple(arr)
 
 
@@ -350,7 +353,7 @@ def _from_dict(d: dict) -> HeadGeometry:
         try:
             mass = float(t["mass_kg"])
         except (TypeError, ValueError):
-            raise HeadFileError(f"{where}.mass_kg = {t['mass_kg']!r} must be a number in kg") from None
+            raise HeadFileError(f"{where}.mass_kg = {brief(t['mass_kg'])} must be a number in kg") from None
         parts.append(Part(
             name=str(t["name"]), link=str(t["link"]), kind=str(t.get("kind", "bracket")),
             center_m=_vec(t["center_m"], f"{where}.center_m"),

@@ -19,11 +19,11 @@ import math
 import xml.etree.ElementTree as ET
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .camera import CameraIntrinsics, default_camera
 from .dynamics import GRAVITY, link_inertias
 from .geometry import HeadGeometry
+from .transforms import quat_wxyz_from_matrix
 
 #: Optical frame -> MuJoCo camera frame (x same, y and z flipped).
 R_OPT_MJCAM = np.diag([1.0, -1.0, -1.0])
@@ -39,8 +39,7 @@ def _fmt(v) -> str:
 
 
 def _quat_wxyz(R: np.ndarray) -> str:
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return _fmt([w, x, y, z])
+    return _fmt(quat_wxyz_from_matrix(R))
 
 
 def effective_joint_inertia(head: HeadGeometry) -> np.ndarray:

@@ -17,7 +17,8 @@ _AXIS_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")
 def render_head(head: HeadGeometry, path: str | Path, postures=None, size=(900, 700)) -> Path:
     """Write a PNG of the head at ``postures`` ((k, 3) joint angles, radians; the first drawn solid,
     the rest translucent). Joint axes are drawn for the first posture, coloured elevation red, pan
-    green, cyclotorsion blue; the optic axis as a yellow arrow. Units in the picture: millimetres."""
+    green, cyclotorsion blue; the optic axis as a yellow arrow. Units in the picture: millimetres.
+    Returns the path written (``.png`` is added to a path without it)."""
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")  # headless
     import pyvista as pv
 
@@ -48,6 +49,8 @@ def render_head(head: HeadGeometry, path: str | Path, postures=None, size=(900, 
     plotter.add_axes()
     plotter.camera_position = [(160.0, -220.0, 160.0), (20.0, 0.0, 40.0), (0.0, 0.0, 1.0)]
     path = Path(path)
+    if path.suffix.lower() != ".png":
+        path = path.with_name(path.name + ".png")   # what the screenshot writes; report the true name
     plotter.screenshot(str(path))
     plotter.close()
     return path

@@ -85,12 +85,19 @@ def servo_from_dict(name: str, d: dict, where: str) -> ServoModel:
     missing = (SERVO_KEYS - {"armature_kgm2"}) - set(d)
     if missing:
         raise ValueError(f"{where}: missing key {sorted(missing)[0]!r}; give it (see HS-50 in the reference head)")
+    try:
+        size = tuple(float(v) for v in d["size_m"])
+        values = {k: float(d[k]) for k in ("travel_deg", "max_speed_rad_s", "stall_torque_nm", "mass_kg")}
+        armature = float(d.get("armature_kgm2", 0.0))
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: every value must be a number (size_m three numbers), in the units its key "
+                         f"names") from None
     return ServoModel(
         name=name,
-        travel_rad=math.radians(float(d["travel_deg"])),
-        max_speed_rad_s=float(d["max_speed_rad_s"]),
-        stall_torque_nm=float(d["stall_torque_nm"]),
-        mass_kg=float(d["mass_kg"]),
-        size_m=tuple(float(v) for v in d["size_m"]),
-        armature_kgm2=float(d.get("armature_kgm2", 0.0)),
+        travel_rad=math.radians(values["travel_deg"]),
+        max_speed_rad_s=values["max_speed_rad_s"],
+        stall_torque_nm=values["stall_torque_nm"],
+        mass_kg=values["mass_kg"],
+        size_m=size,
+        armature_kgm2=armature,
     )

@@ -1,4 +1,5 @@
-"""Reading the suite's TOML files (head, camera, sweep, mount, target) with one-line errors."""
+"""Reading the suite's TOML files (head, camera, sweep, mount, target) with one-line errors, and
+short echoes of their values for those messages."""
 
 from __future__ import annotations
 
@@ -19,3 +20,12 @@ def read_toml(path: str | Path, error: type[Exception], what: str) -> dict:
         return tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise error(f"{path}: not valid TOML ({e})") from None
+
+
+def brief(value, limit: int = 60) -> str:
+    """``repr(value)`` cut to about ``limit`` characters, for messages: a value echoed from a
+    file may be a list of millions of numbers."""
+    if isinstance(value, (list, tuple)) and len(value) > 8:
+        return f"[{len(value)} items: {brief(list(value[:3]), limit)[1:-1]}, ...]"
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 4] + " ..."

@@ -98,9 +98,13 @@ class Motion:
     def pose(self, i: int) -> Pose:
         return Pose(self.rotvec[i], self.root_m[i])
 
+    def subsample_indices(self, n: int) -> np.ndarray:
+        """The frames :meth:`subsample` keeps: at most n, evenly spaced."""
+        return np.unique(np.linspace(0, len(self.t) - 1, min(n, len(self.t))).round().astype(int))
+
     def subsample(self, n: int) -> "Motion":
         """At most n frames, evenly spaced (for scoring over a motion cheaply)."""
-        idx = np.unique(np.linspace(0, len(self.t) - 1, min(n, len(self.t))).round().astype(int))
+        idx = self.subsample_indices(n)
         return Motion(self.name, self.t[idx], self.rotvec[idx], self.root_m[idx], self.unmapped)
 
 

@@ -19,8 +19,10 @@ moves rigidly with the polygon's segment. Three scores, then a combined one:
     Resilience to wearer motion (lower is better): the mean distance of the camera from its
     time-averaged position, and the mean angle of its orientation from its time-averaged
     orientation, over the motion set. "World" figures are taken in a frame moving with the
-    wearer's mean progression (the straight-line fit of the pelvis's path, so walking at a
-    steady speed is not counted as motion, but bounce, sway and turning are);
+    wearer's progression (:func:`progression`: the straight-line fit of the pelvis's path, bent
+    to follow its slow departures from a straight line when the feet travel too, so that
+    walking is not counted as motion, steady or not, straight or curving, but bounce, sway and
+    turning are);
     ``motion_pelvis_mm`` and ``motion_pelvis_deg`` are relative to the pelvis.
 ``combined``
     ``w_fov fov + w_handling handling_view + w_motion / (1 + motion_mm / motion_scale_mm)``,
@@ -31,15 +33,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from kinematics.rays import RayCaster
 from kinematics.summary import fibonacci_sphere
+from kinematics.transforms import nearest_rotation
 
 from .body import SEGMENT_INDEX, SEGMENTS, Body, Motion, Pose
-from .rays import Occluder
 
 SCORE_COLUMNS = ("fov", "handling_view", "motion_mm", "motion_deg", "motion_pelvis_mm", "motion_pelvis_deg",
                  "combined")
@@ -90,7 +95,7 @@ def camera_points(body: Body, pose: Pose | None, standoff_m: float) -> tuple[np.
     return c + standoff_m * n, n
 
 
-def fov_fraction(occluder: Occluder, cameras: np.ndarray, rays: int = 2048, chunk_rays: int = 1 << 21) -> np.ndarray:
+def fov_fraction(occluder: RayCaster, cameras: np.ndarray, rays: int = 2048, chunk_rays: int = 1 << 21) -> np.ndarray:
     """(n,) fraction of the full sphere of directions around each camera (n, 3) that the
     occluder's mesh does not block, from ``rays`` directions on a Fibonacci sphere."""
     dirs = fibonacci_sphere(rays)
@@ -111,7 +116,7 @@ def fov_scores(body: Body, poses: dict[str, Pose], rays: int = 2048, standoff_m:
     with tqdm(total=len(poses), desc="field of view", unit="pose", disable=not progress) as bar:
         for pose in poses.values():
             cams, _ = camera_points(body, pose, standoff_m)
-            total += fov_fraction(Occluder(body.posed_vertices(pose), body.faces), cams, rays)
+            total += fov_fraction(RayCaster(body.posed_vertices(pose), body.faces), cams, rays)
             bar.update(1)
     return total / len(poses)
 
@@ -150,7 +155,7 @@ def handling_scores(body: Body, poses: dict[str, Pose], points_rest: np.ndarray,
         for pose in poses.values():
             G = body.segment_transforms(pose)[ab]
             pts = points_rest @ G[:3, :3].T + G[:3, 3]
-            occ = Occluder(body.posed_vertices(pose), body.faces)
+            occ = RayCaster(body.posed_vertices(pose), body.faces)
             cams, normals = camera_points(body, pose, standoff_m)
             for s in range(0, F, per_chunk):
                 c, n = cams[s:s + per_chunk], normals[s:s + per_chunk]
@@ -173,16 +178,62 @@ def _dispersion(p: np.ndarray, R: Rotation) -> tuple[np.ndarray, np.ndarray]:
     T, F = p.shape[:2]
     dist = np.linalg.norm(p - p.mean(axis=0), axis=2).mean(axis=0)
     Rm = R.as_matrix().reshape(T, F, 3, 3)
-    # Mean rotation per face: project the mean matrix onto SO(3) (chordal L2 mean).
-    M = Rm.mean(axis=0)
-    U, _, Vt = np.linalg.svd(M)
-    D = np.ones((F, 3))
-    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
-    Rbar = U @ (D[:, :, None] * Vt)
+    Rbar = nearest_rotation(Rm.mean(axis=0))          # the chordal L2 mean rotation per face
     rel = np.einsum("fji,tfjk->tfik", Rbar, Rm)                  # Rbar^T R(t)
     cos = np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1, 1)
     ang = np.arccos(cos).mean(axis=0)
     return dist, ang
+
+
+#: The wearer's progression is the pelvis's horizontal path smoothed over about a stride (a
+#: Gaussian of this standard deviation, s, applied twice): it follows starting, stopping and
+#: curving, not the sway of the steps.
+PROGRESSION_SMOOTHING_S = 0.5
+
+
+def _path_length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def progression(body: Body, motion: Motion, G: np.ndarray | None = None) -> np.ndarray:
+    """(T, 3) where the wearer is going, body frame, metres, at each frame of ``motion``.
+
+    The straight-line fit (in time) of the pelvis joint's path, bent by the slow part of the
+    pelvis's horizontal departures from that line (smoothed over a stride,
+    :data:`PROGRESSION_SMOOTHING_S`) in the measure that the feet travel with it: fully for a
+    walk, steady or not, straight or curving (an imported walk starts, stops and veers), not at
+    all when the feet stay put while the hips move (sitting down), which is camera motion.
+    A steady straight walk (the procedural one) is its straight line either way.
+    G : the motion's segment transforms (T, 16, 4, 4) if already computed.
+    """
+    G = body.segment_transforms(motion) if G is None else G
+    t = np.asarray(motion.t, float)
+    A = np.column_stack([np.ones(len(t)), t - t[0]])
+
+    def line(p):
+        coef, *_ = np.linalg.lstsq(A, p, rcond=None)
+        return A @ coef
+
+    pelvis = np.einsum("tij,j->ti", G[:, 0, :3, :3], body.joints[0]) + G[:, 0, :3, 3]
+    path = line(pelvis)
+    dt = float(np.median(np.diff(t))) if len(t) > 2 else 0.0
+    if not dt > 0:
+        return path
+    # "Twicing" (Tukey): smoothing, then smoothing the residue, keeps the slow part without the
+    # bias one smoothing leaves where the speed changes (it would round every ramp off).
+    smooth = partial(gaussian_filter1d, sigma=PROGRESSION_SMOOTHING_S / dt, axis=0, mode="nearest")
+
+    def slow(p):
+        s1 = smooth(p)
+        return s1 + smooth(p - s1)
+
+    feet = [SEGMENT_INDEX["foot_l"], SEGMENT_INDEX["foot_r"]]
+    Gk = G[:, feet]
+    ankles = (np.einsum("tkij,kj->tki", Gk[..., :3, :3], body.joints[feet]) + Gk[..., :3, 3]).mean(axis=1)
+    travel = _path_length(slow(pelvis[:, :2]))
+    share = min(1.0, _path_length(slow(ankles[:, :2])) / travel) if travel > 1e-6 else 0.0
+    path[:, :2] += share * slow(pelvis[:, :2] - path[:, :2])
+    return path
 
 
 def motion_scores(body: Body, motions: list[Motion], standoff_m: float = 0.02, frames: int = 30,
@@ -194,16 +245,14 @@ def motion_scores(body: Body, motions: list[Motion], standoff_m: float = 0.02, f
     seg = body.face_segment
     out = {k: np.zeros(F) for k in ("motion_mm", "motion_deg", "motion_pelvis_mm", "motion_pelvis_deg")}
     for m in tqdm(motions, desc="motion", unit="motion", disable=not progress):
+        # The progression from every frame (the smoothing needs them), the cameras from a few.
+        keep = m.subsample_indices(frames)
+        travel = progression(body, m)[keep]
         m = m.subsample(frames)
         G = body.segment_transforms(m)                     # (T, 16, 4, 4)
         Gf = G[:, seg]                                     # (T, F, 4, 4)
         p = np.einsum("tfij,fj->tfi", Gf[..., :3, :3], cam_rest) + Gf[..., :3, 3]
-        # The wearer's mean progression: a straight-line fit of the pelvis joint's path.
-        pel = np.einsum("tij,j->ti", G[:, 0, :3, :3], body.joints[0]) + G[:, 0, :3, 3]
-        A = np.column_stack([np.ones(len(m.t)), m.t - m.t[0]])
-        coef, *_ = np.linalg.lstsq(A, pel, rcond=None)
-        p_world = p - (A @ coef)[:, None, :]
-        d, a = _dispersion(p_world, Rotation.from_matrix(Gf[..., :3, :3].reshape(-1, 3, 3)))
+        d, a = _dispersion(p - travel[:, None, :], Rotation.from_matrix(Gf[..., :3, :3].reshape(-1, 3, 3)))
         out["motion_mm"] += 1000 * d
         out["motion_deg"] += np.degrees(a)
         Gp_inv = np.linalg.inv(G[:, 0])                    # pelvis frame

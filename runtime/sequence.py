@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence as _Seq, TextIO
@@ -46,6 +47,7 @@ import tomli_w
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, load_camera, save_camera
+from kinematics.outdir import OutputFolderError, check_complete, check_output, output_folder
 from kinematics.tomlfile import read_toml
 
 # Column layouts of the text files (the '#' header line each writer puts at the top).
@@ -600,17 +602,25 @@ class Sequence:
             yield self.frame(i)
 
 
-def open_sequence(path: str | Path) -> Sequence:
+def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
     """Open a sequence folder: rgb.txt and camera.toml (required) and the optional
-    target.toml, groundtruth.txt, imu.txt and joints.txt.
+    target.toml, groundtruth.txt, imu.txt, joints.txt and depth.txt.
 
     Images are not read here (see :meth:`Sequence.frames`). File errors raise SequenceError,
     except camera.toml's, which raise kinematics.camera.CameraFileError naming the file.
+    A recording whose writer has not finished (the ``INCOMPLETE`` marker of
+    :mod:`kinematics.outdir`: still running, or killed) is refused, because its shorter files
+    look whole; ``allow_incomplete`` reads what it holds (every line on disk is whole).
     """
     root = Path(path)
     if not root.is_dir():
         raise SequenceError(f"{root}: not a folder; give a sequence folder holding rgb.txt and "
                             f"camera.toml ({_SEQUENCE_FILES})")
+    if not allow_incomplete:
+        try:
+            check_complete(root, "recording")
+        except OutputFolderError as e:
+            raise SequenceError(str(e)) from None
     cam_path = root / "camera.toml"
     if not cam_path.is_file():
         raise SequenceError(f"{cam_path}: missing; every sequence needs a camera.toml with a [camera] "
@@ -659,13 +669,31 @@ def _read_rgb_list(path: Path, name: str = "rgb.txt") -> tuple[np.ndarray, list[
     return np.array(times, dtype=np.float64), paths
 
 
+def check_new_recording(root: str | Path) -> Path:
+    """Refuse, before any work, a folder a new recording cannot be written into: one that cannot
+    be created or written (kinematics.outdir.check_output), or that already holds a sequence."""
+    root = Path(root)
+    try:
+        check_output(root)
+    except OutputFolderError as e:
+        raise SequenceError(str(e)) from None
+    if (root / "rgb.txt").exists():
+        raise SequenceError(f"{root / 'rgb.txt'}: already exists; record into a new folder, or delete {root} first")
+    return root
+
+
 class SequenceWriter:
     """Record a sequence folder as it happens (a context manager).
 
     ``SequenceWriter(root, camera, target=None)`` writes camera.toml (and target.toml) at once,
-    then each ``add_*`` call appends one line to its text file and flushes it, so a recording
-    that is killed leaves a sequence that opens, holding everything up to the last whole line.
-    Files a recording never adds to (groundtruth.txt, imu.txt, joints.txt) are not created.
+    then each ``add_*`` call appends one line to its text file and flushes it, so every line on
+    disk is whole. Files a recording never adds to (groundtruth.txt, imu.txt, joints.txt,
+    depth.txt) are not created.
+
+    The folder is written inside :func:`kinematics.outdir.output_folder`: locked, and marked
+    ``INCOMPLETE`` until :meth:`close` (or the end of a ``with`` block that did not raise), so a
+    recording that is killed or fails is refused by :func:`open_sequence` instead of passing for
+    a shorter whole one.
 
     root : the folder, created if needed; refused if it already holds an rgb.txt, unless
         overwrite=True (then the old text files are replaced; old images stay until overwritten).
@@ -677,36 +705,47 @@ class SequenceWriter:
                  overwrite: bool = False):
         self.root = Path(root)
         self.camera = camera
-        if (self.root / "rgb.txt").exists() and not overwrite:
-            raise SequenceError(f"{self.root / 'rgb.txt'}: already exists; record into an empty "
-                                f"folder or pass overwrite=True")
-        (self.root / "rgb").mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            # Optional files of the old recording would otherwise be read as this one's.
-            for name in ("target.toml", "groundtruth.txt", "imu.txt", "joints.txt"):
-                (self.root / name).unlink(missing_ok=True)
-        save_camera(camera, self.root / "camera.toml")
-        if target is not None:
-            self.set_target(target)
+        if not overwrite:
+            check_new_recording(self.root)
         self._files: dict[str, TextIO] = {}
+        self._closed = True
+        self._folder = ExitStack()
+        self._folder.enter_context(output_folder(self.root))
         self._last_t: dict[str, float] = {}
         self._last_name: str | None = None  # the previous frame's image, rgb/<t>.png
-        self._closed = False
-        self._open("rgb.txt", ["# timestamp filename  (image sequence, paths relative to this folder)"])
+        try:
+            (self.root / "rgb").mkdir(parents=True, exist_ok=True)
+            if overwrite:
+                # Optional files of the old recording would otherwise be read as this one's.
+                for name in ("target.toml", "groundtruth.txt", "imu.txt", "joints.txt", "depth.txt"):
+                    (self.root / name).unlink(missing_ok=True)
+            save_camera(camera, self.root / "camera.toml")
+            if target is not None:
+                self.set_target(target)
+            self._closed = False
+            self._open("rgb.txt", ["# timestamp filename  (image sequence, paths relative to this folder)"])
+        except BaseException as e:
+            self._close((type(e), e, e.__traceback__))
+            raise
 
     # -- context manager --
     def __enter__(self) -> "SequenceWriter":
         return self
 
     def __exit__(self, *exc) -> None:
-        self.close()
+        self._close(exc)
 
     def close(self) -> None:
-        """Close every file (idempotent)."""
+        """Close every file and mark the recording complete (idempotent)."""
+        self._close((None, None, None))
+
+    def _close(self, exc) -> None:
         for f in self._files.values():
             f.close()
         self._files.clear()
         self._closed = True
+        # An exception leaves the INCOMPLETE marker in place (output_folder's exit sees it).
+        self._folder.__exit__(*exc)
 
     # -- writing --
     def set_target(self, target: Target) -> None:

@@ -15,26 +15,107 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 import argparse  # noqa: E402
 import json
+import math
+import re
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from kinematics import HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
+from kinematics import JOINT_NAMES, HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
 from kinematics.camera import CameraFileError, default_camera, load_camera
+from kinematics.outdir import check_output, output_folder
+
+from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composition root; re-exported)
 
 # Every package's bad-input exception derives from ValueError and carries a one-line message.
-USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError)
+from runtime.drivers import DriverError  # noqa: E402
+
+USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError)
+#: A message longer than this is cut: a value echoed from a file can be megabytes long.
+MAX_MESSAGE = 400
 
 
-def _vector(text: str) -> np.ndarray:
-    try:
-        v = np.array([float(x) for x in text.split(",")])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not X,Y,Z (three comma-separated numbers, metres)") from None
-    if v.shape != (3,):
-        raise argparse.ArgumentTypeError(f"{text!r} must have three components X,Y,Z")
-    return v
+class _Parser(argparse.ArgumentParser):
+    """argparse with the suite's error style: one line and exit status 2, never the usage dump."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+
+
+def _numbers(names: tuple[str, ...], unit: str):
+    """An argparse type for a comma-separated vector of len(names) finite numbers (names and
+    unit say what they are in the message)."""
+    form = ",".join(names)
+
+    def parse(text: str) -> np.ndarray:
+        try:
+            v = np.array([float(x) for x in text.split(",")])
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {form} ({len(names)} comma-separated numbers, "
+                                             f"{unit})") from None
+        if v.shape != (len(names),):
+            raise argparse.ArgumentTypeError(f"{text!r} must have {len(names)} components {form} ({unit})")
+        if not np.all(np.isfinite(v)):
+            raise argparse.ArgumentTypeError(f"{text!r}: every component of {form} must be a finite number ({unit})")
+        return v
+
+    parse.__name__ = form   # argparse names the type in some messages
+    return parse
+
+
+_point = _numbers(("X", "Y", "Z"), "metres")
+_direction = _numbers(("X", "Y", "Z"), "a direction")
+_angles = _numbers(("E", "P", "C"), "degrees: elevation, pan, cyclotorsion")
+_box = _numbers(("X", "Y", "W", "H"), "pixels: corner, width, height")
+#: Options whose value is a vector: "--target -1.35,-0.6,0.85" must not be read as an option.
+_VECTOR_OPTIONS = {"--target", "--up", "--current", "--posture", "--init"}
+_NEGATIVE_VECTOR = re.compile(r"-[0-9.][^\s]*,.*")
+
+
+def _with_negative_vectors(argv: list[str]) -> list[str]:
+    """Join a vector option and a value that starts with a minus sign ("--current -10,0,0")
+    into one token ("--current=-10,0,0"), which argparse would otherwise take for an option;
+    a positional vector (``wvr head goto -10,0,0``) gets a leading space, which argparse does
+    not read as an option and float() ignores."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in _VECTOR_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VECTOR.fullmatch(argv[i + 1]):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+        elif a == "goto" and i + 1 < len(argv) and _NEGATIVE_VECTOR.fullmatch(argv[i + 1]):
+            out += [a, " " + argv[i + 1]]
+            i += 2
+        else:
+            out.append(a)
+            i += 1
+    return out
+
+
+def _number(kind: type, test, what: str):
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'a whole number' if kind is int else 'a number'}") \
+                from None
+        if not (math.isfinite(v) and test(v)):
+            raise argparse.ArgumentTypeError(f"{text!r} must be {what}")
+        return v
+
+    parse.__name__ = what
+    return parse
+
+
+_positive_int = _number(int, lambda v: v > 0, "a whole number above 0")
+_positive = _number(float, lambda v: v > 0, "a number above 0")
+_nonnegative = _number(float, lambda v: v >= 0, "a number >= 0")
+_seconds = _number(float, lambda v: v > 0, "a duration above 0 s")
+
+
+def _short(message: str) -> str:
+    return message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE - 20] + " ... (message cut)"
 
 
 def cmd_kinematics_show(args) -> int:
@@ -57,7 +138,17 @@ def cmd_kinematics_mjcf(args) -> int:
 
 def cmd_kinematics_ik(args) -> int:
     head = load_head(args.head)
-    q0 = np.radians(args.current) if args.current is not None else np.zeros(3)
+    q0 = np.zeros(3)
+    if args.current is not None:
+        q0 = np.radians(args.current)
+        out = np.flatnonzero((q0 < head.lower - 1e-9) | (q0 > head.upper + 1e-9))
+        if out.size:
+            from kinematics import JOINT_NAMES
+
+            j = int(out[0])
+            raise ValueError(f"--current: {JOINT_NAMES[j]} = {args.current[j]:g} deg is outside its range "
+                             f"[{math.degrees(head.lower[j]):g}, {math.degrees(head.upper[j]):g}] deg; give the "
+                             f"joint angles the head is at now (E,P,C degrees)")
     solve = gaze_at_point if args.point else gaze_at_direction
     res = solve(head, args.target, args.up, q_current=q0)
     if not res.reachable:
@@ -72,36 +163,42 @@ def cmd_kinematics_ik(args) -> int:
     return 0
 
 
+def _picture_path(text: str) -> Path:
+    """The PNG a picture goes to: ``--out`` itself when it ends in .png, ``head.png`` inside it
+    when it is an existing folder; anything else is refused (the renderer would add .png)."""
+    path = Path(text)
+    if path.is_dir():
+        path = path / "head.png"
+    elif path.suffix.lower() != ".png":
+        raise ValueError(f"--out {text}: a picture is a PNG file; give a path ending in .png (e.g. head.png), "
+                         f"or an existing folder to write head.png into")
+    check_output(path.parent)
+    return path
+
+
 def cmd_kinematics_picture(args) -> int:
     from kinematics.picture import render_head
 
     head = load_head(args.head)
-    out = render_head(head, args.out, postures=np.radians(np.array(args.posture)) if args.posture else None)
+    path = _picture_path(args.out)
+    out = render_head(head, path, postures=np.radians(np.array(args.posture)) if args.posture else None)
     print(f"wrote {out}")
     return 0
 
 
 def cmd_design_optimise(args) -> int:
-    from design.report import write_outputs
-    from design.sweep import open_client, run_sweep
+    from design.study import optimise
     from design.sweep_file import load_sweep
 
     spec = load_sweep(args.sweep)
-    out = Path(args.out)
-    client = open_client(args.workers, args.scheduler)
-    try:
-        result = run_sweep(spec, out, evaluations=args.evaluations, seed=args.seed, algorithm=args.algorithm,
-                           resume=args.resume, client=client)
-    finally:
-        if client is not None:
-            client.close()
-    s = write_outputs(result, spec, out)
-    print(f"{s['evaluations']} evaluations ({result.evaluated} computed now, {result.reused} reused), "
-          f"{s['feasible']} feasible, front of {s['front_size']}")
-    if s.get("chosen") is not None or "chosen_index" in s:
-        print(f"chosen head: {out / 'chosen_head.toml'}; report: {out / 'report.md'}")
+    o = optimise(spec, args.out, evaluations=args.evaluations, seed=args.seed, algorithm=args.algorithm,
+                 resume=args.resume, workers=args.workers, scheduler=args.scheduler)
+    print(f"{o.evaluations} evaluations ({o.evaluated} computed now, {o.reused} reused), "
+          f"{o.feasible} feasible, front of {o.front_size}")
+    if o.chosen is not None:
+        print(f"chosen head: {o.chosen.head_path}; report: {o.report_path}")
     else:
-        print(f"no feasible design; see {out / 'report.md'}")
+        print(f"no feasible design; see {o.report_path}")
     return 0
 
 
@@ -125,63 +222,37 @@ def cmd_design_template(args) -> int:
 
 def cmd_placement_map(args) -> int:
     from placement.body import make_body
-    from placement.io import load_body, load_bvh
+    from placement.io import load_body
     from placement.mapping import placement_map
     from placement.motions import default_motions
+    from placement.retarget import load_bvh
     from placement.scores import ScoreSettings
 
     if (args.body is None) != (args.joints is None):
         raise ValueError("--body and --joints go together: a labelled mesh and its joints JSON")
+    check_output(args.out)
     body = load_body(args.body, args.joints) if args.body else make_body(args.stature)
-    motions = [load_bvh(p, body) for p in args.motion] if args.motion else default_motions(body)
+    motions = ([load_bvh(p, body, scale=args.motion_scale, up=args.motion_up, allow_missing=args.allow_missing_joints)
+                for p in args.motion] if args.motion else default_motions(body))
     for m in motions:
         if m.unmapped:
             print(f"{m.name}: joints not driving any segment: {', '.join(m.unmapped)}")
     settings = ScoreSettings(rays=args.rays, standoff_m=args.standoff)
-    s = placement_map(args.out, body, motions, settings)
-    print(f"scored {s['polygons']} places; maps, scores.csv, zones.md and mount.toml in {args.out}")
-    for r in s["zones"]:
-        if r["polygons"]:
-            print(f"  {r['zone']:9s} fov {r['fov']:.3f}  handling {r['handling_view']:.3f}  motion {r['motion_mm']:.0f} mm  "
-                  f"combined {r['combined']:.3f}  ({r['frame']}, acceptability {r['acceptability']})")
+    r = placement_map(args.out, body, motions, settings)
+    print(f"scored {r.polygons} places; maps, scores.csv, zones.md and mount.toml in {r.folder}")
+    for z in r.zones.rows.values():
+        if z is not None:
+            print(f"  {z.zone:9s} fov {z.fov:.3f}  handling {z.handling_view:.3f}  motion {z.motion_mm:.0f} mm  "
+                  f"combined {z.combined:.3f}  ({z.frame}, acceptability {z.acceptability})")
+    if r.zones.mount_zone is None:
+        print("no zone qualifies for mount.toml (every zone ties the camera to the wearer's attention)")
     return 0
-
-
-def wearer_for(scenario, seconds: float):
-    """The twin's wearer for a scenario: the placement body posed by the named placement motion,
-    placed in the world where the scenario says (the twin never imports placement itself)."""
-    from placement import motions
-    from placement.body import SEGMENTS, make_body
-    from runtime.twin.wearer import Wearer
-
-    body = make_body()
-    if scenario.motion == "stand":
-        m = motions.stand(body, seconds)
-    elif scenario.motion == "walk":
-        m = motions.walk(body, seconds, speed_m_s=scenario.walk_speed_m_s, cycle_s=1.2)
-    elif scenario.motion == "sit-down":
-        m = motions.sit_down(body, seconds)
-    else:
-        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down")
-    G = scenario.T_world_body() @ body.segment_transforms(m)
-    return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
-
-
-def make_twin(head_path=None, mount_path=None, camera_path=None):
-    """A Twin with the chosen (or reference) head, the chosen (or default shoulder) mount."""
-    from kinematics import reference_head
-    from runtime.twin.mount import default_shoulder_mount, load_mount
-    from runtime.twin.twin import Twin
-
-    head = load_head(head_path) if head_path else reference_head()
-    mount = load_mount(mount_path) if mount_path else default_shoulder_mount
-    cam = load_camera(camera_path) if camera_path else default_camera()
-    return Twin(head, cam, mount, wearer_for)
 
 
 def cmd_sim_record(args) -> int:
     from dataclasses import replace
 
+    from runtime.sequence import check_new_recording
     from runtime.twin.recorder import record
     from runtime.twin.scenarios import get_scenario
 
@@ -190,23 +261,41 @@ def cmd_sim_record(args) -> int:
         if not 0.0 <= args.dim_to <= 1.0:
             raise ValueError(f"--dim-to {args.dim_to}: give the final light level as a fraction 0..1")
         scenario = replace(scenario, dim_to=args.dim_to)
-    twin = make_twin(args.head, args.mount, args.camera)
+    for flag, v in (("--seed", args.seed), ("--scene-seed", args.scene_seed)):
+        if v is not None and v < 0:
+            raise ValueError(f"{flag} {v}: give a seed of 0 or more")
+    if not (np.isfinite(args.click_error) and 0.0 <= args.click_error <= 50.0):
+        raise ValueError(f"--click-error {args.click_error}: give the operator's click error in pixels, 0 to 50")
+    check_new_recording(args.out)       # before the twin is built: a refusal loses no work
+    twin = make_twin(args.head, args.mount, args.camera, ideal_imu=args.ideal_imu, ideal_camera=args.ideal_camera)
     try:
-        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth)
+        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth,
+                     scene_seed=args.scene_seed, click_error_px=args.click_error)
     finally:
         twin.close()
-    print(f"recorded {args.scenario} into {out}")
+    print(f"recorded {args.scenario} (seed {args.seed}, scene seed {twin.scene_seed}) into {out}")
     return 0
 
 
-def cmd_sim_run(args) -> int:
-    import math
+def _check_limit(limit_deg_s: float, head_path) -> None:
+    """--limit in the unit the flag takes (deg/s): above 0, at most the head's servos' speed."""
+    from kinematics import reference_head
 
+    head = load_head(head_path) if head_path else reference_head()
+    top = math.degrees(float(np.min(head.max_speed)))
+    if not (math.isfinite(limit_deg_s) and 0 < limit_deg_s <= top + 1e-9):
+        raise ValueError(f"--limit {limit_deg_s:g} deg/s: the controlled-motion limit must be above 0 and at most "
+                         f"the servos' {top:.0f} deg/s (the paper's is 30)")
+
+
+def cmd_sim_run(args) -> int:
+    from runtime.apps.closed_loop import Task, load_targets
     from runtime.gaze import ControllerSettings
-    from runtime.twin.loop import Task, load_targets, run_closed_loop
     from runtime.twin.scenarios import get_scenario
+    from wvr.assemble import run_on_twin
 
     scenario = get_scenario(args.scenario)
+    _check_limit(args.limit, args.head)
     targets = [np.asarray(t, float) for t in (args.target or [])]
     dwell = args.dwell
     if args.targets:
@@ -215,23 +304,19 @@ def cmd_sim_run(args) -> int:
         dwell = file_dwell or dwell
     if not targets and args.task == "fixate":
         targets = [scenario.bench.target_corners().mean(axis=0)]
-    if any(np.shape(t) != (3,) for t in targets):
-        raise ValueError("--target takes three numbers X,Y,Z (world frame, m)")
-    region = None
-    if getattr(args, "init", None) is not None:
-        if np.shape(args.init) != (4,):
-            raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
-        region = tuple(float(v) for v in args.init)
+    region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
                 method=getattr(args, "method", "hyperplane"))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
-    twin = make_twin(args.head, args.mount, args.camera)
-    try:
-        s = run_closed_loop(twin, scenario, task, args.out, seconds=args.seconds, seed=args.seed, settings=settings)
-    finally:
-        twin.close()
+    with output_folder(args.out) as out:    # checked before the twin starts, INCOMPLETE until the end
+        twin = make_twin(args.head, args.mount, args.camera)
+        try:
+            s = run_on_twin(twin, scenario, task, out, seconds=args.seconds, seed=args.seed, settings=settings,
+                            click_error_px=getattr(args, "click_error", 2.5))
+        finally:
+            twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
-    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, report.md")
+    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, head.toml, report.md")
     return 0 if not s["refusals"] else 1
 
 
@@ -239,8 +324,8 @@ def cmd_stabilise(args) -> int:
     from runtime.vision2d.stabilise import stabilise_sequence
 
     fovea = _size(args.fovea, "--fovea")
-    totals = stabilise_sequence(args.seq, args.out, fovea=fovea, use_imu=args.imu)
-    print(json.dumps(totals, indent=1))
+    r = stabilise_sequence(args.seq, args.out, fovea=fovea, use_imu=args.imu)
+    print(json.dumps(r.stats(), indent=1))
     print(f"wrote {Path(args.out) / 'rotations.tum'}, fovea/, report.md")
     return 0
 
@@ -260,29 +345,31 @@ def cmd_track(args) -> int:
         # The closed loop: the twin's head keeps the tracked target centred (gaze track mode).
         if not args.scenario:
             raise ValueError("--servo runs the closed loop in the twin: give --scenario NAME (and no SEQ)")
+        if args.seq:
+            raise ValueError(f"--servo runs in the twin, not on a sequence: leave out {args.seq!r}")
         args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, 30.0
         return cmd_sim_run(args)
     if not args.seq:
         raise ValueError("give the sequence folder SEQ (or --servo --scenario NAME for the closed loop)")
-    if args.init is None or np.shape(args.init) != (4,):
+    if args.init is None:
         raise ValueError("--init X,Y,W,H is required: the target's box in the first frame, pixels")
     from runtime.vision2d.track import track_sequence
 
-    totals = track_sequence(args.seq, args.out, init=tuple(float(v) for v in args.init), method=args.method)
-    print(json.dumps(totals, indent=1))
+    r = track_sequence(args.seq, args.out, init=tuple(float(v) for v in args.init), method=args.method)
+    print(json.dumps(r.stats(), indent=1))
     print(f"wrote {Path(args.out) / 'polygons.csv'}, annotated/, stats.json")
     return 0
 
 
 def cmd_slam(args) -> int:
-    from runtime.slam.run import run_slam
-
     from dataclasses import replace
 
+    from runtime.slam.run import run_slam
     from runtime.slam.system import MapSettings
 
     settings = replace(MapSettings(), use_imu=not args.no_imu, bias_time_s=args.imu_bias_time)
-    totals = run_slam(args.seq, args.out, max_frames=args.max_frames, video=args.video, settings=settings)
+    with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends
+        totals = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, settings=settings)
     print(f"{totals['frames']} frames ({totals['skipped']} skipped), {totals['features']} features in the map, "
           f"{totals['mean_matched']:.1f} matched per frame, {totals['mean_ms_per_frame']:.1f} ms per frame"
           + ("; track was LOST for " + str(totals["lost_frames"]) + " frames" if totals["lost"] else ""))
@@ -290,24 +377,218 @@ def cmd_slam(args) -> int:
     return 0
 
 
+#: eval warns when fewer than this share of the estimated poses have a ground-truth pose.
+MIN_COVERAGE = 0.9
+
+
 def cmd_eval(args) -> int:
+    from kinematics.outdir import check_complete
     from runtime.sequence import open_sequence, read_trajectory
     from runtime.slam.eval import trajectory_errors
 
+    result = Path(args.result)
+    if not result.is_dir():
+        raise ValueError(f"{result}: not a folder; give the folder wvr slam wrote (with trajectory.tum)")
+    check_complete(result, "SLAM result")
     seq = open_sequence(args.seq)
     if seq.groundtruth is None:
         raise ValueError(f"{args.seq}: no groundtruth.txt to evaluate against")
-    e = trajectory_errors(read_trajectory(Path(args.result) / "trajectory.tum"), seq.groundtruth)
-    print(f"poses matched: {e.matched}")
+    est = read_trajectory(result / "trajectory.tum")
+    e = trajectory_errors(est, seq.groundtruth)
+    print(f"poses matched: {e.matched} of {len(est)}")
+    if e.matched < MIN_COVERAGE * len(est):
+        print(f"warning: the ground truth covers only {e.matched} of the {len(est)} estimated poses "
+              f"({100 * e.matched / len(est):.0f}%); every figure below describes that part only", file=sys.stderr)
     print(f"ATE (no alignment): RMSE {100 * e.ate_rmse_m:.2f} cm, max {100 * e.ate_max_m:.2f} cm")
     print(f"ATE (SE3-aligned):  RMSE {100 * e.ate_aligned_rmse_m:.2f} cm, max {100 * e.ate_aligned_max_m:.2f} cm")
-    print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
-    if seq.depth_paths is not None and (Path(args.result) / "map.csv").exists():
+    if math.isfinite(e.rpe_trans_rmse_m):
+        print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
+    else:
+        from runtime.slam.eval import associate
+
+        span = float(np.ptp(est.t[associate(est, seq.groundtruth)[0]]))
+        print(f"RPE over {e.rpe_delta_s:g} s: cannot be computed: the matched poses span {span:.2f} s, not more "
+              f"than {e.rpe_delta_s:g} s")
+    if seq.depth_paths is not None and (result / "map.csv").exists():
         from runtime.slam.eval import map_errors
 
-        m = map_errors(seq, Path(args.result) / "map.csv")
-        print(f"map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
-              f"median {100 * m.median_m:.2f} cm")
+        m = map_errors(seq, result / "map.csv")
+        if len(m.errors_m):
+            print(f"map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
+                  f"median {100 * m.median_m:.2f} cm")
+        else:
+            print("map against the true depth: cannot be computed: no mapped feature falls on a pixel with depth")
+    return 0
+
+
+# ------------------------------------------------------------------ the hardware rig
+
+def _degrees3(text: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise ValueError(f"{text!r} is not E,P,C (three comma-separated angles, degrees)") from None
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"{text!r} must be three finite angles E,P,C in degrees")
+    return v
+
+
+def cmd_head(args) -> int:
+    """Bring-up moves at a slow, stated rate; nothing beyond the head's range is ever sent."""
+    import math
+
+    from runtime.drivers.maestro import Maestro
+    from runtime.drivers.rig import ServoBoard, load_rig
+    from runtime.drivers.safety import EStop
+
+    cfg = load_rig(args.rig)
+    estop = EStop(cfg.estop_file)
+    if args.action == "stop":
+        estop.trip("stopped from the command line (wvr head stop)")
+        print(f"emergency stop latched ({cfg.estop_file}); every run holds until wvr head --rig {args.rig} reset")
+        return 0
+    if args.action == "reset":
+        estop.reset()
+        print("emergency stop cleared")
+        return 0
+    head = cfg.head
+    if args.action == "goto":
+        if args.angles is None:
+            raise ValueError("goto needs the angles: wvr head --rig rig.toml goto E,P,C (degrees)")
+        goal = np.radians(_degrees3(args.angles))
+        bad = (goal < head.lower - 1e-12) | (goal > head.upper + 1e-12)
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise ValueError(f"{JOINT_NAMES[j]} {math.degrees(goal[j]):.1f} deg is beyond the head's range "
+                             f"{math.degrees(head.lower[j]):.1f}..{math.degrees(head.upper[j]):.1f} deg; nothing was sent")
+        poses = [goal]
+    elif args.action == "home":
+        poses = [cfg.home]
+    else:                                       # sweep: each joint through its range, and back
+        poses = []
+        for j in range(3):
+            for a in (head.lower[j], head.upper[j], cfg.home[j]):
+                q = cfg.home.copy()
+                q[j] = a
+                poses.append(q)
+    if estop.tripped:
+        raise DriverError(f"the emergency stop is latched ({estop.reason}); clear it with wvr head --rig {args.rig} reset")
+    rate = math.radians(args.rate)
+    if not 0 < rate <= float(np.min(cfg.speed_limit_rad_s)):
+        raise ValueError(f"--rate {args.rate:g} deg/s must be positive and at most the board's "
+                         f"{math.degrees(float(np.min(cfg.speed_limit_rad_s))):.0f} deg/s")
+    board = ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device))
+    try:
+        board.start()
+        print(f"moving at {args.rate:g} deg/s (the board's speed limit for the move)")
+        for q in poses:
+            reached = board.move_slowly(q, rate, timeout_s=args.timeout)
+            print("at " + ", ".join(f"{n} {math.degrees(v):.1f}" for n, v in zip(JOINT_NAMES, reached)) + " deg")
+        board.maestro.check_errors()
+    finally:
+        board.maestro.close()
+    return 0
+
+
+def cmd_run(args) -> int:
+    import math
+
+    from runtime.apps.closed_loop import Task, load_targets, run_closed_loop
+    from runtime.apps.session import SessionRecorder
+    from runtime.drivers.rig import load_rig
+    from runtime.gaze import ControllerSettings
+    from runtime.sequence import load_target
+    from wvr.assemble import make_rig
+
+    cfg = load_rig(args.rig)
+    out = Path(args.out)
+    if (out / "rgb.txt").exists():
+        raise ValueError(f"{out}: already holds a recording (rgb.txt); give a new --out folder")
+    start_path = Path(args.start_target) if args.start_target else cfg.start_target
+    start = load_target(start_path) if start_path is not None else None
+    targets = [np.asarray(t, float) for t in (args.target or [])]
+    dwell = args.dwell
+    if args.targets:
+        pts, file_dwell = load_targets(args.targets)
+        targets += list(pts)
+        dwell = file_dwell or dwell
+    if not targets and args.task == "fixate" and start is not None:
+        targets = [start.xyz.mean(axis=0)]           # the known target's centre
+    region = None
+    if args.init is not None:
+        if np.shape(args.init) != (4,):
+            raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
+        region = tuple(float(v) for v in args.init)
+    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method)
+    limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
+    if task.uses_slam and start is None:
+        raise ValueError(f"task {task.kind} starts SLAM from the known target: give --start-target target.toml "
+                         f"(or [start] target in {args.rig})")
+    out.mkdir(parents=True, exist_ok=True)
+    rig = make_rig(cfg)
+    rec = SessionRecorder(out, cfg.camera, cfg.head, start, notes={"rig": str(Path(args.rig).resolve()), "task": task.kind})
+    complete, reason, s = False, "", None
+    try:
+        s = run_closed_loop(rig, task, out, start_target=start, seconds=args.seconds, settings=settings,
+                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec)
+        complete = s["ended"] in ("complete",) or s["ended"].endswith("stream ended")
+        reason = s["ended"]
+    except DriverError as e:
+        reason = f"fault: {e}"
+        raise
+    finally:
+        stop = rig.safe_stop(home=True)
+        rig.close()
+        rep = rig.chain.report()
+        rec.notes.update(safe_stop=stop, safety=rep.__dict__)
+        rec.finish(complete, reason or "stopped")
+    print(Path(out, "report.md").read_text().split("![")[0].strip())
+    print(f"wrote {out}: rgb/, rgb.txt, imu.txt, joints.txt, camera.toml, head.toml, target.toml, trajectory.tum, "
+          f"joints.csv, session.json ({'complete' if complete else 'INCOMPLETE: ' + reason}); safe stop: {stop}")
+    return 0 if not s["refusals"] else 1
+
+
+def cmd_sim_hil(args) -> int:
+    from runtime.twin.hil import HilSession
+
+    out = Path(args.out)
+    if (out / "rig.toml").exists() and not args.force:
+        raise ValueError(f"{out}: already holds a HIL session (rig.toml); give a new --out folder")
+    twin = make_twin(args.head, args.mount, args.camera)
+    twin.configure(args.scenario, seed=args.seed, seconds=args.seconds)
+    session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger, click_error_px=args.click_error)
+
+    def ready():
+        print(f"HIL ready: run  wvr run --rig {out / 'rig.toml'} --task fixate --out RUN_DIR", flush=True)
+    session.ready = ready
+    try:
+        st = session.run(progress=not args.quiet)
+    finally:
+        session.close()
+        twin.close()
+    print(f"served {st.frames} frames, {st.target_commands} target commands, {st.stalls} stalls; "
+          f"truth in {out / 'groundtruth.txt'}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    if args.what == "camera":
+        from runtime.drivers.calibrate import calibrate_camera
+
+        if not args.images or not args.board:
+            raise ValueError("wvr calibrate camera needs --images DIR and --board chessboard:COLSxROWS:SQUARE_M")
+        res = calibrate_camera(args.images, args.board, args.model, args.out)
+        print(f"{res.images_used} of {res.images_total} images used; RMS reprojection error {res.rms_px:.3f} px; "
+              f"wrote {res.path}")
+        return 0
+    from runtime.drivers.calibrate import calibrate_imu
+
+    if not args.rig:
+        raise ValueError("wvr calibrate imu needs --rig rig.toml")
+    res = calibrate_imu(args.rig, args.seconds)
+    print(f"{res.samples} samples over {res.seconds:.1f} s: gyro bias {np.round(res.gyro_bias, 5).tolist()} rad/s, "
+          f"accel bias {np.round(res.accel_bias, 4).tolist()} m/s^2 (camera frame); written into {args.rig}")
     return 0
 
 
@@ -323,18 +604,20 @@ def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, 
     """The options every twin run takes (record, closed loop, tracking servo): scenario,
     duration, seed, and the head, mount and camera files. ``when`` prefixes their help."""
     p.add_argument("--scenario", required=required, choices=sorted(scenarios), help=f"{when}the twin scenario")
-    p.add_argument("--seconds", type=float, help=f"{when}duration (default: the scenario's)")
-    p.add_argument("--seed", type=int, default=0, help=f"{when}scene seed (textures, object layout, sensor noise)")
+    p.add_argument("--seconds", type=_seconds, help=f"{when}duration, s, above 0 (default: the scenario's)")
+    p.add_argument("--seed", type=int, default=0,
+                   help=f"{when}run seed: motion variation and sensor noise, and the place (textures, layout)")
     p.add_argument("--head", help=f"{when}head.toml (default: the reference head)")
     p.add_argument("--mount", help=f"{when}mount.toml from wvr placement map (default: on the right shoulder)")
     p.add_argument("--camera", help=f"{when}camera.toml (default: 640x480, f = 514.7 px)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from runtime.twin.scenarios import SCENARIOS, TASKS
+    from runtime.apps.closed_loop import TASKS
+    from runtime.twin.scenarios import SCENARIOS
     from runtime.vision2d.track import METHODS
 
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="wvr",
         description="wvr: design, place and run an active wearable camera (Mayol, Davison, Tordoff, Murray).",
     )
@@ -345,7 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
     show = ksub.add_parser("show", help="print the chain, masses, radii, torques and gaze coverage of a head")
     show.add_argument("head", help="head.toml, or 'reference'")
     show.add_argument("--json", action="store_true", help="print JSON instead of Markdown")
-    show.add_argument("--directions", type=int, default=2000, help="gaze directions sampled for coverage")
+    show.add_argument("--directions", type=_positive_int, default=2000, help="gaze directions sampled for coverage")
     show.set_defaults(func=cmd_kinematics_show)
     mj = ksub.add_parser("mjcf", help="write the head's MJCF model to standard output")
     mj.add_argument("head", help="head.toml, or 'reference'")
@@ -353,15 +636,18 @@ def build_parser() -> argparse.ArgumentParser:
     mj.set_defaults(func=cmd_kinematics_mjcf)
     ik = ksub.add_parser("ik", help="joint angles that fixate a direction or point (mount frame), image upright")
     ik.add_argument("head", help="head.toml, or 'reference'")
-    ik.add_argument("--target", type=_vector, required=True, help="X,Y,Z direction (or point with --point), mount frame")
+    ik.add_argument("--target", type=_point, required=True, metavar="X,Y,Z",
+                    help="direction (or point in metres with --point), mount frame")
     ik.add_argument("--point", action="store_true", help="the target is a 3D point in metres, not a direction")
-    ik.add_argument("--up", type=_vector, default=np.array([0.0, 0.0, 1.0]), help="world up in the mount frame")
-    ik.add_argument("--current", type=_vector, help="current joint angles, degrees")
+    ik.add_argument("--up", type=_direction, default=np.array([0.0, 0.0, 1.0]), metavar="X,Y,Z",
+                    help="world up in the mount frame")
+    ik.add_argument("--current", type=_angles, metavar="E,P,C", help="current joint angles, degrees")
     ik.set_defaults(func=cmd_kinematics_ik)
     pic = ksub.add_parser("picture", help="render the head to a PNG (offscreen)")
     pic.add_argument("head", help="head.toml, or 'reference'")
-    pic.add_argument("--out", required=True, help="PNG path")
-    pic.add_argument("--posture", type=_vector, action="append", help="joint angles in degrees (repeatable)")
+    pic.add_argument("--out", required=True, help="PNG path (or an existing folder: head.png in it)")
+    pic.add_argument("--posture", type=_angles, action="append", metavar="E,P,C",
+                     help="joint angles in degrees (repeatable)")
     pic.set_defaults(func=cmd_kinematics_picture)
 
     des = sub.add_parser("design", help="Pareto optimisation of the head's layout (7 criteria)")
@@ -369,11 +655,11 @@ def build_parser() -> argparse.ArgumentParser:
     opt = dsub.add_parser("optimise", help="run (or resume) a design sweep; writes the front and chosen_head.toml")
     opt.add_argument("--sweep", help="sweep.toml (default: the shipped default sweep; see sweep-template)")
     opt.add_argument("--out", required=True, help="output directory")
-    opt.add_argument("--evaluations", type=int, help="evaluation budget (default: the sweep file's)")
+    opt.add_argument("--evaluations", type=_positive_int, help="evaluation budget (default: the sweep file's)")
     opt.add_argument("--seed", type=int, help="random seed (default: the sweep file's)")
     opt.add_argument("--algorithm", choices=["nsga3", "random"], help="default: the sweep file's")
     group = opt.add_mutually_exclusive_group()
-    group.add_argument("--workers", type=int, help="evaluate on a local Dask cluster of N worker processes")
+    group.add_argument("--workers", type=_positive_int, help="evaluate on a local Dask cluster of N worker processes")
     group.add_argument("--scheduler", help="evaluate on an existing Dask cluster, e.g. tcp://HOST:8786")
     opt.add_argument("--resume", action="store_true", help="continue a killed sweep in --out")
     opt.set_defaults(func=cmd_design_optimise)
@@ -390,10 +676,17 @@ def build_parser() -> argparse.ArgumentParser:
     pm.add_argument("--out", required=True, help="output directory")
     pm.add_argument("--body", help="labelled mesh (OBJ with a group per segment, or PLY with a face label)")
     pm.add_argument("--joints", help="joints JSON for --body: segment name -> joint centre (m)")
-    pm.add_argument("--stature", type=float, default=1.75, help="stature of the generated body, m (default 1.75)")
+    pm.add_argument("--stature", type=_positive, default=1.75, help="stature of the generated body, m (default 1.75)")
     pm.add_argument("--motion", action="append", help="BVH motion file (repeatable); default: walk, sit, turn, reach")
-    pm.add_argument("--rays", type=int, default=2048, help="rays per place for the field of view (default 2048)")
-    pm.add_argument("--standoff", type=float, default=0.02, help="camera stand-off from the surface, m (default 0.02)")
+    pm.add_argument("--motion-up", choices=["y", "z"], default="y",
+                    help="the BVH files' up axis (default y, as most BVH files)")
+    pm.add_argument("--motion-scale", type=_positive, metavar="M",
+                    help="metres per BVH unit, e.g. 0.01 for centimetres (default: fitted to the body)")
+    pm.add_argument("--allow-missing-joints", action="store_true",
+                    help="keep segments no BVH joint drives at rest (default: refuse such files)")
+    pm.add_argument("--rays", type=_positive_int, default=2048, help="rays per place for the field of view (default 2048)")
+    pm.add_argument("--standoff", type=_nonnegative, default=0.02,
+                    help="camera stand-off from the surface, m (default 0.02)")
     pm.set_defaults(func=cmd_placement_map)
 
     sim = sub.add_parser("sim", help="the MuJoCo twin: record sequences of the wearer and the head")
@@ -403,24 +696,84 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.add_argument("--depth", action="store_true",
                      help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
+    rec.add_argument("--scene-seed", type=int, metavar="S",
+                     help="fix the place (textures, object layout) apart from --seed (default: --seed); recordings "
+                          "of scenarios in one place with one scene seed show the same place")
+    rec.add_argument("--ideal-imu", action="store_true",
+                     help="an ideal IMU (white noise only) instead of a BMI088's biases, scale errors and clock offset")
+    rec.add_argument("--ideal-camera", action="store_true",
+                     help="clean renders: no motion blur, auto-exposure or sensor noise")
+    rec.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="how far off the operator clicks the target's corners in target.toml, pixels "
+                          "(default 2.5; 0: the exact projection)")
     _twin_options(rec, SCENARIOS)
     rec.set_defaults(func=cmd_sim_record)
 
     run = ssub.add_parser("run", help="closed loop: twin, SLAM and gaze controller (fixate, saccade, Path A, Path B)")
     run.add_argument("--task", required=True, choices=list(TASKS))
-    run.add_argument("--target", action="append", type=_vector, metavar="X,Y,Z",
+    run.add_argument("--target", action="append", type=_point, metavar="X,Y,Z",
                      help="world point to fixate or saccade to, m (repeatable; default for fixate: the scenario's "
                           "known rectangle's centre)")
     run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
-    run.add_argument("--dwell", type=float, default=2.0, help="seconds on each saccade target (default 2)")
+    run.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
     run.add_argument("--limit", type=float, default=30.0,
                      help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
-    run.add_argument("--init", type=_vector, metavar="X,Y,W,H",
+    run.add_argument("--init", type=_box, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    run.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
+                          "(default 2.5; 0: the exact projection)")
     run.add_argument("--out", required=True, help="output directory")
     _twin_options(run, SCENARIOS)
     run.set_defaults(func=cmd_sim_run)
+
+    hil = ssub.add_parser("hil", help="hardware in the loop: the twin behind a virtual Maestro, IMU and camera; writes rig.toml")
+    hil.add_argument("--out", required=True, help="folder for rig.toml, camera/, target.toml, groundtruth.txt")
+    hil.add_argument("--imu", choices=["bno085-rvc", "text"], default="bno085-rvc",
+                     help="the IMU stream rig.toml uses (both are served)")
+    hil.add_argument("--wait", type=_positive, default=5.0, help="seconds of wall time the world waits for each command")
+    hil.add_argument("--linger", type=_nonnegative, default=8.0, help="seconds the board stays up after the run (safe stop)")
+    hil.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+                     help="how far off (px) the simulated person clicks target.toml's corners (default 2.5)")
+    hil.add_argument("--force", action="store_true", help="reuse an --out folder that holds a HIL session")
+    hil.add_argument("--quiet", action="store_true", help="no progress bar")
+    _twin_options(hil, SCENARIOS)
+    hil.set_defaults(func=cmd_sim_hil)
+
+    hd = sub.add_parser("head", help="bring-up of the real head: home, goto E,P,C, sweep; stop / reset the e-stop")
+    hd.add_argument("--rig", required=True, help="rig.toml")
+    hd.add_argument("action", choices=["home", "goto", "sweep", "stop", "reset"])
+    hd.add_argument("angles", nargs="?", help="goto: E,P,C in degrees")
+    hd.add_argument("--rate", type=_positive, default=20.0, help="joint speed for the move, deg/s (default 20)")
+    hd.add_argument("--timeout", type=_positive, default=30.0, help="seconds to wait for each move")
+    hd.set_defaults(func=cmd_head)
+
+    rr = sub.add_parser("run", help="the closed loop on the hardware rig (the tasks of wvr sim run); records the session")
+    rr.add_argument("--rig", required=True, help="rig.toml")
+    rr.add_argument("--task", required=True, choices=list(TASKS))
+    rr.add_argument("--target", action="append", type=_point, metavar="X,Y,Z", help="world point, m (repeatable; "
+                    "default for fixate: the start target's centre)")
+    rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
+    rr.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
+    rr.add_argument("--limit", type=_positive, default=30.0, help="controlled-motion limit, deg/s (at most rig.toml's)")
+    rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")
+    rr.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    rr.add_argument("--start-target", help="target.toml: known points and their pixels in the first image "
+                    "(default: rig.toml [start] target)")
+    rr.add_argument("--seconds", type=_seconds, help="stop after this long (default: until Ctrl-C or the camera ends)")
+    rr.add_argument("--out", required=True, help="output folder (the session's recording and results)")
+    rr.set_defaults(func=cmd_run)
+
+    cal = sub.add_parser("calibrate", help="camera intrinsics from board images; IMU still biases into rig.toml")
+    cal.add_argument("what", choices=["camera", "imu"])
+    cal.add_argument("--images", help="camera: a folder of board images")
+    cal.add_argument("--board", help="camera: chessboard:COLSxROWS:SQUARE_M (inner corners), e.g. chessboard:9x6:0.025")
+    cal.add_argument("--model", choices=["brown", "fisheye", "radial-sqrt"], default="brown", help="camera: lens model")
+    cal.add_argument("--out", default="camera.toml", help="camera: the camera.toml to write")
+    cal.add_argument("--rig", help="imu: rig.toml (its [imu] gets the biases)")
+    cal.add_argument("--seconds", type=_seconds, default=10.0, help="imu: how long to hold still")
+    cal.set_defaults(func=cmd_calibrate)
 
     stab = sub.add_parser("stabilise", help="visual (and inertial) stabilisation with a software fovea")
     stab.add_argument("seq", help="sequence folder (TUM layout with camera.toml)")
@@ -431,7 +784,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     trk = sub.add_parser("track", help="2D object tracking (hyperplane planar tracker or mean shift); --servo in the twin")
     trk.add_argument("seq", nargs="?", help="sequence folder (not with --servo)")
-    trk.add_argument("--init", type=_vector, metavar="X,Y,W,H", help="the target's box in the first frame, pixels")
+    trk.add_argument("--init", type=_box, metavar="X,Y,W,H", help="the target's box in the first frame, pixels")
     trk.add_argument("--method", choices=METHODS, default="hyperplane", help="the 2D tracker")
     trk.add_argument("--out", required=True, help="output directory")
     trk.add_argument("--servo", action="store_true",
@@ -442,11 +795,11 @@ def build_parser() -> argparse.ArgumentParser:
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")
     sl.add_argument("seq", help="sequence folder (TUM layout with camera.toml and target.toml)")
     sl.add_argument("--out", required=True, help="output directory")
-    sl.add_argument("--max-frames", type=int, help="stop after N frames")
+    sl.add_argument("--max-frames", type=_positive_int, help="stop after N frames")
     sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles) and video.mp4")
     sl.add_argument("--no-imu", action="store_true",
                     help="ignore imu.txt (camera only: the constant-velocity motion model)")
-    sl.add_argument("--imu-bias-time", type=float, default=0.0, metavar="S",
+    sl.add_argument("--imu-bias-time", type=_nonnegative, default=0.0, metavar="S",
                     help="estimate the IMU's biases with this time constant, s (default 0: the IMU is calibrated)")
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
@@ -461,12 +814,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = _with_negative_vectors(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
     except USER_ERRORS as e:
-        print(f"wvr: error: {e}", file=sys.stderr)
+        print(f"wvr: error: {_short(str(e))}", file=sys.stderr)
         return 2
+    except OSError as e:      # a file that cannot be written or read, named by the OS
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"wvr: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("wvr: interrupted (an output folder it was writing stays marked INCOMPLETE)", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """``wvr demo``: every stage that exists, in pipeline order, with small budgets.
 
 Each stage writes into its own folder under the output directory and returns a Markdown
-section for ``report.md`` that links its files. Later stages (design, placement, twin, SLAM,
-gaze, stabilisation) append themselves to :data:`STAGES` in pipeline order; the head a stage
-uses is whatever the previous stages chose (``context["head"]``).
+section for ``report.md`` that links its files, printed from the runners' typed results. The
+stages (design, kinematics, placement, twin, SLAM, gaze, stabilisation, planar tracking, head
+tracking) are listed in :data:`STAGES` in pipeline order; the head a stage uses is whatever the
+previous stages chose (``context["head"]``).
 """
 
 from __future__ import annotations
@@ -34,26 +35,24 @@ def demo_sweep():
 
 def stage_design(out: Path, context: dict) -> str:
     """A small NSGA-III sweep of the head's layout; its chosen head flows to every later stage."""
-    from design.report import write_outputs
-    from design.sweep import run_sweep
+    from design.study import optimise
     from kinematics import load_head
 
-    spec = demo_sweep()
-    result = run_sweep(spec, out, progress=False)
-    s = write_outputs(result, spec, out)
+    o = optimise(demo_sweep(), out, progress=False)
     rel = out.name
-    if s.get("chosen_index") is None:
-        return f"No feasible design in {s['evaluations']} evaluations; later stages use the reference head."
-    context["head"] = load_head(out / "chosen_head.toml")
-    rows = "\n".join(f"| `{k}` | {v:.4g} | {s['reference_criteria'][k]:.4g} |" for k, v in s["chosen_criteria"].items())
+    if o.chosen is None:
+        return f"No feasible design in {o.evaluations} evaluations; later stages use the reference head."
+    c = o.chosen
+    context["head"] = load_head(c.head_path)
+    rows = "\n".join(f"| `{k}` | {v:.4g} | {c.reference_criteria[k]:.4g} |" for k, v in c.criteria.items())
     return "\n".join([
-        f"NSGA-III over the positions of camera and motors, {s['evaluations']} evaluations: {s['feasible']} feasible, "
-        f"front of {s['front_size']}, hypervolume {s['hypervolume']:.3f} (normalised, Monte Carlo). "
-        f"{s['decision'].capitalize()}.",
+        f"NSGA-III over the positions of camera and motors, {o.evaluations} evaluations: {o.feasible} feasible, "
+        f"front of {o.front_size}, hypervolume {c.hypervolume:.3f} (normalised, Monte Carlo). "
+        f"{c.decision.capitalize()}.",
         f"Files: [report.md]({rel}/report.md), [front.csv]({rel}/front.csv), [evaluations.csv]({rel}/evaluations.csv), "
         f"[chosen_head.toml]({rel}/chosen_head.toml).", "",
         "| criterion | chosen | reference head |", "|---|---|---|", rows, "",
-        f"![front]({rel}/front_parallel.png)",
+        f"![front]({rel}/{o.pictures['parallel']})",
     ])
 
 
@@ -90,26 +89,25 @@ def stage_placement(out: Path, context: dict) -> str:
     from placement.mapping import placement_map
     from placement.scores import ScoreSettings
 
-    s = placement_map(out, settings=ScoreSettings(rays=256, motion_frames=15), progress=False)
-    context["mount"] = out / "mount.toml"
+    r = placement_map(out, settings=ScoreSettings(rays=256, motion_frames=15), progress=False)
+    if r.zones.mount_zone is not None:
+        context["mount"] = out / "mount.toml"
     rel = out.name
-    maps = " ".join(f"![{k}]({rel}/{v})" for k, v in s["maps"].items() if k in ("fov", "combined"))
-    zones = (out / "zones.md").read_text().split("\n", 2)[2]
+    maps = " ".join(f"![{k}]({rel}/{v})" for k, v in r.maps.items() if k in ("fov", "combined"))
+    zones = r.zones.markdown().split("\n", 2)[2]
     return "\n".join([
-        f"{s['polygons']} places on a {s['stature_m']:.2f} m body, {s['rays']} rays each over the poses "
-        f"{', '.join(s['poses'])}; motions {', '.join(s['motions'])}. "
+        f"{r.polygons} places on a {r.stature_m:.2f} m body, {r.rays} rays each over the poses "
+        f"{', '.join(r.poses)}; motions {', '.join(r.motions)}. "
         f"Files: [scores.csv]({rel}/scores.csv), [zones.md]({rel}/zones.md), [mount.toml]({rel}/mount.toml), "
-        + ", ".join(f"[{k} map]({rel}/{v})" for k, v in s["maps"].items()) + ".", "", maps, "", zones])
+        + ", ".join(f"[{k} map]({rel}/{v})" for k, v in r.maps.items()) + ".", "", maps, "", zones])
 
 
 def _twin(out: Path, context: dict):
-    """A twin with the head and mount the earlier stages chose (written into ``out``)."""
-    from wvr.cli import make_twin
+    """A twin with the head and mount the earlier stages chose (the objects themselves)."""
+    from wvr.assemble import make_twin
 
-    head_file = out / "head.toml"
-    save_head(context.get("head") or reference_head(), head_file)
     mount = context.get("mount")
-    return make_twin(head_file, mount if mount and Path(mount).exists() else None)
+    return make_twin(context.get("head") or reference_head(), mount if mount and Path(mount).exists() else None)
 
 
 def stage_twin(out: Path, context: dict) -> str:
@@ -160,14 +158,15 @@ def stage_slam(out: Path, context: dict) -> str:
 def stage_gaze(out: Path, context: dict) -> str:
     """Closed loop: the chosen head fixates the target while the wearer walks towards it, the
     controller seeing only SLAM (images), the IMU and the encoders."""
-    from runtime.twin.loop import Task, run_closed_loop
+    from runtime.apps.closed_loop import Task
     from runtime.twin.scenarios import get_scenario
+    from wvr.assemble import run_on_twin
 
     sc = get_scenario("walk-ahead")
     target = sc.bench.target_corners().mean(axis=0)
     twin = _twin(out, context)
     try:
-        s = run_closed_loop(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
+        s = run_on_twin(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
     except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
         return f"The closed loop could not run with the chosen head and mount: {e}"
     finally:
@@ -199,15 +198,100 @@ def stage_stabilise(out: Path, context: dict) -> str:
         twin.close()
     s = stabilise_sequence(seq, out / "stabilised", use_imu=True, progress=False)
     rel = f"{out.name}/stabilised"
-    lines = [f"3 s of `sit-down`, fovea 320x240, gyro-predicted and vision-measured rotation: {s['frames']} frames, "
-             f"{s['flagged']} flagged, {s['clamped']} with the fovea at the image edge.", ""]
-    if "rotation_rms_error_deg" in s:
-        lines.append(f"- inter-frame rotation against the truth: RMS {s['rotation_rms_error_deg']:.3f} deg, "
-                     f"max {s['rotation_max_error_deg']:.3f} deg")
-    lines += [f"- background motion: raw {s['raw_motion_px']:.2f} px/frame, fovea {s['fovea_motion_px']:.2f} "
-              f"(ratio {s['motion_ratio']:.2f}; the head already holds its gaze, so what is left is mostly parallax)",
+    lines = [f"3 s of `sit-down`, fovea {s.fovea[0]}x{s.fovea[1]}, gyro-predicted and vision-measured rotation: "
+             f"{s.frames} frames, {s.flagged} flagged, {s.clamped} with the fovea at the image edge.", ""]
+    if s.rotation_rms_error_deg is not None:
+        lines.append(f"- inter-frame rotation against the truth: RMS {s.rotation_rms_error_deg:.3f} deg, "
+                     f"max {s.rotation_max_error_deg:.3f} deg")
+    lines += [f"- background motion: raw {s.raw_motion_px:.2f} px/frame, fovea {s.fovea_motion_px:.2f} "
+              f"(ratio {s.motion_ratio:.2f}; the head already holds its gaze, so what is left is mostly parallax)",
               "", f"Files: [report.md]({rel}/report.md), [rotations.tum]({rel}/rotations.tum), [fovea.csv]({rel}/fovea.csv)."]
     return "\n".join(lines)
+
+
+def stage_planar_tracking(out: Path, context: dict) -> str:
+    """The planar tracker (hyperplane approximation) on the twin's hand-held card, a quarter of
+    it occluded from 1 s, started from the card's corners in the first frame (what a user would
+    click); its corners scored against the card's true corners."""
+    from kinematics.camera import project
+    from runtime.sequence import open_sequence
+    from runtime.twin.recorder import record
+    from runtime.twin.scenarios import get_scenario
+    from runtime.vision2d.track import track_sequence
+
+    scenario = get_scenario("workbench-card")
+    twin = _twin(out, context)
+    try:
+        seq_dir = record(twin, scenario, out / "workbench-card", seconds=1.8, seed=0, progress=False)
+    except ValueError as e:       # e.g. the card is not in view from the chosen head and mount
+        return f"The card could not be recorded with the chosen head and mount: {e}"
+    finally:
+        twin.close()
+    seq = open_sequence(seq_dir)
+    T = seq.groundtruth.interpolate(seq.timestamps).T_world_cam()      # truth: for scoring only
+    truth = np.array([project(seq.camera, (scenario.card_corners(t) - T[i, :3, 3]) @ T[i, :3, :3])
+                      for i, t in enumerate(seq.timestamps)])
+    r = track_sequence(seq_dir, out / "tracked", init=truth[0], method="hyperplane", progress=False)
+    rows = np.genfromtxt(out / "tracked" / "polygons.csv", delimiter=",", skip_header=1)
+    poly = rows[:, 1:9].reshape(-1, 4, 2)
+    ok = rows[:, 9] == 0
+    err = np.sqrt(np.mean(np.sum((poly[ok] - truth[ok]) ** 2, axis=2), axis=1))
+    occluded = np.asarray(seq.timestamps)[ok] >= 1.0
+    rel = f"{out.name}/tracked"
+    lines = [f"{r.frames} frames of `workbench-card` (the card moved by hand, the camera following it), tracked from "
+             f"its corners in the first frame: {r.tracked} tracked, {r.lost_frames} lost, "
+             f"{r.tracking_fps or 0:.0f} frames/s after {r.learn_seconds:.2f} s of learning.", ""]
+    for label, sel in (("before the occluder", ~occluded), ("a quarter occluded", occluded)):
+        if sel.any():
+            lines.append(f"- corner error against the true corners, {label}: RMS {np.sqrt(np.mean(err[sel] ** 2)):.2f} px, "
+                         f"max {err[sel].max():.2f} px")
+    lines += ["", f"Files: [polygons.csv]({rel}/polygons.csv), [stats.json]({rel}/stats.json), "
+                  f"[first annotated frame]({rel}/annotated/000000.png).", "",
+              f"![the last frame]({rel}/annotated/{len(seq) - 1:06d}.png)"]
+    return "\n".join(lines)
+
+
+def stage_head_tracking(out: Path, context: dict) -> str:
+    """The head tracker on a rendered head turning in yaw, pitch and roll, and the joint targets
+    that slave the chosen head to it (gaze.slaving); errors against the rendered poses."""
+    import math
+
+    import cv2
+
+    from kinematics.camera import CameraIntrinsics
+    from runtime.gaze.slaving import head_to_joint_targets
+    from runtime.vision2d.headscene import render_head_sequence, smooth_head_motion
+    from runtime.vision2d.headtrack import HeadTracker
+
+    head = context.get("head") or reference_head()
+    cam = CameraIntrinsics(width=320, height=240, fx=257.35, fy=257.35, cx=159.5, cy=119.5)
+    ypr = smooth_head_motion(60, math.radians(40), math.radians(20), math.radians(8))
+    images, T_true, cam = render_head_sequence(ypr, 0.6, seed=0, camera=cam)
+    tracker = HeadTracker(cam)
+    results = tracker.track(images, T_true[0])            # started at the known frontal pose
+    ok = np.array([not r.lost for r in results])
+    est = np.array([r.ypr for r in results])
+    err = np.degrees(est[ok] - ypr[ok])
+    q = np.array([head_to_joint_targets(e, limits=head) for e in est[ok]])
+    with open(out / "poses.csv", "w") as f:
+        f.write("frame,lost,yaw_deg,pitch_deg,roll_deg,true_yaw_deg,true_pitch_deg,true_roll_deg,"
+                "q_elevation_deg,q_pan_deg,q_cyclotorsion_deg\n")
+        k = 0
+        for i, r in enumerate(results):
+            qi = np.degrees(q[k]) if ok[i] else np.full(3, np.nan)
+            k += int(ok[i])
+            f.write(",".join([str(i), str(int(r.lost))] + [f"{v:.3f}" for v in
+                              (*np.degrees(r.ypr), *np.degrees(ypr[i]), *qi)]) + "\n")
+    cv2.imwrite(str(out / "first_frame.png"), cv2.cvtColor(images[0], cv2.COLOR_RGB2BGR))
+    rms = np.sqrt(np.mean(err ** 2, axis=0)) if len(err) else np.full(3, np.nan)
+    rel = out.name
+    return "\n".join([
+        f"{len(results)} rendered frames (320x240, head 0.6 m away) turning within +-40 deg yaw, +-20 pitch, +-8 roll, "
+        f"tracked from the known frontal pose: {int((~ok).sum())} lost, {len(tracker.keyframes)} keyframes.", "",
+        f"- RMS error against the rendered poses: yaw {rms[0]:.2f}, pitch {rms[1]:.2f}, roll {rms[2]:.2f} deg",
+        f"- slaving the `{head.name}` head: joint targets (elevation, pan, cyclotorsion) up to "
+        f"{', '.join(f'{v:.0f}' for v in np.degrees(np.abs(q).max(axis=0)))} deg, within its ranges", "",
+        f"Files: [poses.csv]({rel}/poses.csv).", "", f"![first frame]({rel}/first_frame.png)"])
 
 
 #: (folder, title, function) in pipeline order.
@@ -219,24 +303,29 @@ STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
     ("slam", "SLAM: MonoSLAM on the recording", stage_slam),
     ("gaze", "Gaze control: closed-loop fixation while walking", stage_gaze),
     ("stabilise", "Stabilisation: a software fovea on the sit-down recording", stage_stabilise),
+    ("planar-tracking", "Planar tracking: the hand-held card, a quarter occluded", stage_planar_tracking),
+    ("head-tracking", "Head tracking and slaving", stage_head_tracking),
 ]
 
 
 def run_demo(out: Path) -> Path:
-    """Run all stages into ``out``; returns the path of ``report.md``."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Run all stages into ``out`` (an output folder: INCOMPLETE until the report is written);
+    returns the path of ``report.md``."""
+    from kinematics.outdir import output_folder
+
     context: dict = {}
     sections = ["# wvr demo", "",
                 "Every stage of the pipeline that exists, in order, with small budgets "
                 "(Mayol, Davison, Tordoff, Murray: *Applying Active Vision and SLAM to Wearables*).", ""]
-    for folder, title, fn in tqdm(STAGES, desc="wvr demo", unit="stage"):
-        d = out / folder
-        if d.exists():          # the demo owns its folders: every run starts afresh
-            shutil.rmtree(d)
-        d.mkdir()
-        t0 = time.perf_counter()
-        body = fn(d, context)
-        sections += [f"## {title}", "", body, "", f"*Stage time: {time.perf_counter() - t0:.1f} s*", ""]
-    report = out / "report.md"
-    report.write_text("\n".join(sections))
+    with output_folder(out) as out:
+        for folder, title, fn in tqdm(STAGES, desc="wvr demo", unit="stage"):
+            d = out / folder
+            if d.exists():          # the demo owns its folders: every run starts afresh
+                shutil.rmtree(d)
+            d.mkdir()
+            t0 = time.perf_counter()
+            body = fn(d, context)
+            sections += [f"## {title}", "", body, "", f"*Stage time: {time.perf_counter() - t0:.1f} s*", ""]
+        report = out / "report.md"
+        report.write_text("\n".join(sections))
     return report

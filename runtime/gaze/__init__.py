@@ -2,9 +2,10 @@
 Paths A and B, 2D tracking), its joint-rate QP, the IMU attitude filter and wearer prompts."""
 
 from .attitude import AttitudeFilter
-from .controller import MODES, ControllerSettings, GazeCommand, GazeController, GazeRefused
+from .modes import MODES, Body, Desired, Fixate, Hold, Mode, Saccade, Slave, Stabilise, Track
+from .controller import ControllerSettings, GazeCommand, GazeController, GazeRefused
 from .prompts import Prompt, wearer_prompt
 from .qp import RateQP, RateQPSettings
 
-__all__ = ["MODES", "AttitudeFilter", "ControllerSettings", "GazeCommand", "GazeController", "GazeRefused",
+__all__ = ["MODES", "AttitudeFilter", "Body", "Desired", "Fixate", "Hold", "Mode", "Saccade", "Slave", "Stabilise", "Track", "ControllerSettings", "GazeCommand", "GazeController", "GazeRefused",
            "Prompt", "RateQP", "RateQPSettings", "wearer_prompt"]

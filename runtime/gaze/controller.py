@@ -31,13 +31,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinematics import HeadGeometry, ServoFilter, forward_kinematics, gaze_at_direction, gaze_at_point
-from kinematics.camera import CameraIntrinsics, unproject
+from kinematics.camera import CameraIntrinsics
 
 from .attitude import AttitudeFilter
+from .modes import Body, Desired, Fixate, Hold, Mode, Saccade, Slave, Stabilise, Track
 from .prompts import Prompt, wearer_prompt
 from .qp import RateQP, RateQPSettings
 
-MODES = ("hold", "fixate", "saccade", "stabilise", "body", "track", "slave")
 UP = np.array([0.0, 0.0, 1.0])
 
 
@@ -84,10 +84,6 @@ class GazeCommand:
     landed: bool = False
 
 
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    return Rotation.from_rotvec(w).as_matrix()
-
-
 class GazeController:
     """Gaze control of the head from SLAM, IMU and encoders (no ground truth).
 
@@ -115,8 +111,7 @@ class GazeController:
         self.qp = RateQP(settings.qp)
         self.attitude = AttitudeFilter()
         self.qd_prev = np.zeros(3)
-        self.mode = "hold"
-        self.target = None            # world point, world attitude (3, 3), mount direction, or pixel
+        self.active: Mode = Hold()
         self.T_world_mount: np.ndarray | None = None
         self.v_mount = np.zeros(3)
         self.w_mount = np.zeros(3)    # world frame, rad/s
@@ -128,70 +123,74 @@ class GazeController:
         self.landed = False
 
     # ------------------------------------------------------------------ modes
+    @property
+    def mode(self) -> str:
+        """The active mode's name (one of :data:`MODES`)."""
+        return self.active.name
+
+    def set_mode(self, mode: Mode) -> None:
+        """Make a mode object (runtime.gaze.modes) active; the methods below build and check them."""
+        self.active = mode
+        if isinstance(mode, Saccade):
+            self.landed = False
+
     def fixate(self, p_world) -> None:
         """Hold the optic axis on a world point (m); refused (GazeRefused) if unreachable now."""
-        self._aim_at(p_world, "fixate")
+        self._aim_at(Fixate(p_world))
 
     def saccade(self, p_world) -> None:
         """Move the gaze to a world point (in view or not) at the controlled-motion limit, then
         hold it there (fixation). Refused if unreachable from the wearer's current pose."""
-        self._aim_at(p_world, "saccade")
-        self.landed = False
+        self._aim_at(Saccade(p_world))
 
     def stabilise(self, R_world_cam=None) -> None:
         """Path A: hold the camera's attitude (default: the present one, from the IMU alone)."""
         R = self.attitude.R if R_world_cam is None else np.asarray(R_world_cam, float)
         if R is None:
             raise ValueError("stabilise needs an attitude: step the controller with IMU samples first")
-        self.mode, self.target = "stabilise", R.copy()
+        self.set_mode(Stabilise(R))
 
     def body(self, d_mount=None) -> None:
         """Path B: hold a gaze direction relative to the wearer's body (mount frame); default
         the present one. Refused if no joint angles point that way."""
         if d_mount is None:
             d_mount = forward_kinematics(self.head, self.filter.q).optic_axis
-        res = gaze_at_direction(self.head, d_mount, self._up_mount(), q_current=self.filter.q)
+        d_mount = np.asarray(d_mount, float)
+        res = gaze_at_direction(self.head, d_mount, self.up_mount(), q_current=self.filter.q)
         if not res.reachable:
             raise GazeRefused(f"body direction {np.round(d_mount, 3).tolist()} unreachable: {res.reason}")
-        self.mode, self.target = "body", res.q.copy()
+        self.set_mode(Body(d_mount, res.q.copy()))
 
     def track(self, uv) -> None:
         """Keep an image point (pixel) centred, e.g. a 2D tracker's target; call again with
         each new measurement."""
-        uv = np.asarray(uv, float)
-        if uv.shape != (2,) or not np.isfinite(uv).all():
-            raise ValueError(f"track target must be a finite pixel (u, v), got {uv.tolist()}")
-        self.mode, self.target = "track", uv
+        self.set_mode(Track(uv))
 
     def slave(self, q) -> None:
         """Follow joint angles given from outside (3,), rad: a tracked person's head mapped onto
         the wearable's joints (vision2d.headtrack.head_to_joint_targets). Call again with each
         new target; angles outside the joint ranges are refused (map them into range first)."""
-        q = np.asarray(q, float)
-        if q.shape != (3,) or not np.isfinite(q).all():
-            raise ValueError(f"slave target must be 3 finite joint angles, rad, got {q.tolist()}")
-        out = (q < self.head.lower - 1e-12) | (q > self.head.upper + 1e-12)
+        mode = Slave(q)
+        out = (mode.q < self.head.lower - 1e-12) | (mode.q > self.head.upper + 1e-12)
         if out.any():
-            raise GazeRefused(f"slave target {np.degrees(q).round(1).tolist()} deg lies outside the joint ranges")
-        self.mode, self.target = "slave", q.copy()
+            raise GazeRefused(f"slave target {np.degrees(mode.q).round(1).tolist()} deg lies outside the joint ranges")
+        self.set_mode(mode)
 
     def hold(self) -> None:
-        self.mode, self.target = "hold", None
+        self.set_mode(Hold())
 
-    def _aim_at(self, p_world, mode: str) -> None:
-        p = np.asarray(p_world, float)
-        if p.shape != (3,) or not np.isfinite(p).all():
-            raise ValueError(f"gaze target must be a finite world point (x, y, z) m, got {p.tolist()}")
+    def _aim_at(self, mode: Fixate) -> None:
+        p = mode.p_world
         if self.T_world_mount is not None:
-            res = self._ik_point(p, self.T_world_mount)
+            res = self.ik_point(p, self.T_world_mount)
             if not res.reachable:
                 prompt = wearer_prompt(self.head, self.T_world_mount, p, self.filter.q)
-                self._emit(prompt, force=True)
+                self.emit(prompt, force=True)
                 raise GazeRefused(f"target {np.round(p, 3).tolist()} m is out of the head's reach: {res.reason}", prompt)
-        self.mode, self.target = mode, p
+        self.set_mode(mode)
 
     # ------------------------------------------------------------------ estimation
-    def _up_mount(self) -> np.ndarray:
+    def up_mount(self) -> np.ndarray:
         if self.T_world_mount is not None:
             return self.T_world_mount[:3, :3].T @ UP
         if self.attitude.R is not None:
@@ -229,16 +228,16 @@ class GazeController:
         """(4, 4) the mount's pose ``lead`` s ahead at constant velocity."""
         lead = self.lead if lead is None else lead
         T = self.T_world_mount.copy()
-        T[:3, :3] = _so3_exp(self.w_mount * lead) @ T[:3, :3]
+        T[:3, :3] = Rotation.from_rotvec(self.w_mount * lead).as_matrix() @ T[:3, :3]
         T[:3, 3] = T[:3, 3] + self.v_mount * lead
         return T
 
-    def _ik_point(self, p_world, T_world_mount):
+    def ik_point(self, p_world, T_world_mount):
         R, o = T_world_mount[:3, :3], T_world_mount[:3, 3]
         return gaze_at_point(self.head, R.T @ (p_world - o), R.T @ UP, q_current=self.filter.q)
 
     # ------------------------------------------------------------------ control
-    def _emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
+    def emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
         if prompt.kind == "ok":          # reachable from where the wearer is now: nothing to ask
             return None
         if force or self.t - self._last_prompt_t >= self.s.prompt_every_s:
@@ -246,49 +245,6 @@ class GazeController:
             self.prompts.append((self.t, prompt))
             return prompt
         return None
-
-    def _desired(self) -> tuple[np.ndarray | None, float, bool, Prompt | None]:
-        """The mode's desired angles, its error estimate, reachability and any prompt."""
-        q = self.filter.q
-        if self.mode == "hold" or self.T_world_mount is None and self.mode in ("fixate", "saccade"):
-            return None, float("nan"), True, None
-        if self.mode in ("fixate", "saccade"):
-            p = self.target
-            T_now = self.T_world_mount @ self.pose_enc.T_mount_cam
-            d = p - T_now[:3, 3]
-            err = math.acos(float(np.clip(T_now[:3, 2] @ d / np.linalg.norm(d), -1.0, 1.0)))
-            res = self._ik_point(p, self.predicted_mount())
-            if not res.reachable:
-                prompt = self._emit(wearer_prompt(self.head, self.T_world_mount, p, q))
-                return None, err, False, prompt
-            return res.q, err, True, None
-        if self.mode == "stabilise":
-            if self.attitude.R is None:
-                return None, float("nan"), True, None
-            R_wm = self.attitude.R @ self.pose_enc.R_mount_cam.T
-            R_wm_pred = _so3_exp(self.w_mount * self.lead) @ R_wm
-            R_mc_des = R_wm_pred.T @ self.target
-            err = float(Rotation.from_matrix(self.target.T @ self.attitude.R).magnitude())
-            # Optic axis from the desired z; "up" = the desired image's up (-y), so the vertical
-            # rule reproduces the desired roll exactly (z x -y = x).
-            res = gaze_at_direction(self.head, R_mc_des[:, 2], -R_mc_des[:, 1], q_current=q)
-            return (res.q if res.reachable else None), err, res.reachable, None
-        if self.mode in ("body", "slave"):
-            return self.target, float(np.linalg.norm(self.target - q)), True, None
-        if self.mode == "track":
-            pose = self.pose_enc
-            ray = unproject(self.camera, self.target[None])[0]
-            ray = ray / np.linalg.norm(ray)
-            err = math.acos(float(np.clip(ray[2], -1.0, 1.0)))
-            d_mount = pose.R_mount_cam @ ray
-            if self.T_world_mount is not None or self.attitude.R is not None:
-                # The body keeps turning while the command is reached: look where the point will be.
-                R_wm = self.T_world_mount[:3, :3] if self.T_world_mount is not None else \
-                    self.attitude.R @ pose.R_mount_cam.T
-                d_mount = (R_wm.T @ _so3_exp(-self.w_mount * self.lead) @ R_wm) @ d_mount
-            res = gaze_at_direction(self.head, d_mount, self._up_mount(), q_current=q)
-            return (res.q if res.reachable else None), err, res.reachable, None
-        raise ValueError(f"unknown mode {self.mode!r}; one of {MODES}")
 
     def step(self, t: float, imu, encoders, T_world_cam=None, v_world=None) -> GazeCommand:
         """One control period.
@@ -307,7 +263,8 @@ class GazeController:
         if T_world_cam is not None and not np.isfinite(np.asarray(T_world_cam, float)).all():
             T_world_cam = None
         self._estimate_mount(T_world_cam, v_world)
-        q_des, err, reachable, prompt = self._desired()
+        goal: Desired = self.active.desired(self)
+        q_des, err, reachable, prompt = goal.q, goal.error_rad, goal.reachable, goal.prompt
         q = self.filter.q
         if q_des is None:
             qd_des = np.zeros(3)

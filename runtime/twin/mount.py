@@ -1,9 +1,10 @@
-"""mount.toml: where the head's mount frame sits on a wearer segment.
+"""Where the head's mount frame sits on a wearer segment: :class:`Mount`, from mount.toml.
 
-Written by ``wvr placement map`` (the best polygon of a zone). The segment frame has its origin
-at the segment's joint centre and the body's axes in the rest pose (+Z up, facing -Y). The
-mount frame is the head's (x forward, y left, z up when worn upright): z is ``up``, x is
-``forward`` (made perpendicular to ``up``); ``normal`` (the surface's) is for reference.
+mount.toml (written by ``wvr placement map``) has one schema, :mod:`kinematics.mountfile`; this
+module turns it into the twin's Mount. The segment frame has its origin at the segment's joint
+centre and the body's axes in the rest pose (+Z up, facing -Y). The mount frame is the head's
+(x forward, y left, z up when worn upright): z is ``up``, x is ``forward`` (made perpendicular
+to ``up``).
 """
 
 from __future__ import annotations
@@ -13,11 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from kinematics.tomlfile import read_toml
+from kinematics.mountfile import MountFileError as MountError
+from kinematics.mountfile import load_mount_file
 
-
-class MountError(ValueError):
-    """A mount.toml that cannot be used; the message names the field."""
+__all__ = ["Mount", "MountError", "default_shoulder_mount", "load_mount"]
 
 
 @dataclass(frozen=True)
@@ -39,32 +39,10 @@ class Mount:
         return T
 
 
-_KEYS = {"zone", "segment", "polygon", "position_m", "up", "forward", "normal", "standoff_m", "stature_m"}
-
-
 def load_mount(path: str | Path) -> Mount:
-    path = Path(path)
-    d = read_toml(path, MountError, "a mount.toml written by 'wvr placement map'")
-    m = d.get("mount")
-    if not isinstance(m, dict):
-        raise MountError(f"{path}: missing the [mount] table")
-    for k in m:
-        if k not in _KEYS:
-            raise MountError(f"{path}: [mount] has unknown key {k!r}; allowed keys are {sorted(_KEYS)}")
-    vecs = {}
-    for k in ("position_m", "up", "forward"):
-        v = np.asarray(m.get(k, []), float)
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise MountError(f"{path}: [mount].{k} must be 3 finite numbers")
-        vecs[k] = v
-    for k in ("up", "forward"):
-        if abs(np.linalg.norm(vecs[k]) - 1) > 1e-3:
-            raise MountError(f"{path}: [mount].{k} must be a unit vector")
-    if abs(vecs["up"] @ vecs["forward"]) > 0.99:
-        raise MountError(f"{path}: [mount].forward must not be parallel to [mount].up")
-    if "segment" not in m:
-        raise MountError(f"{path}: [mount].segment is missing (e.g. 'chest')")
-    return Mount(str(m["segment"]), vecs["position_m"], vecs["up"], vecs["forward"], str(m.get("zone", "")))
+    """The Mount a mount.toml describes (raises MountError naming the file and field)."""
+    m = load_mount_file(path)
+    return Mount(m.segment, m.position_m, m.up, m.forward, m.zone)
 
 
 def default_shoulder_mount(wearer, side: str = "r", standoff_m: float = 0.02) -> Mount:

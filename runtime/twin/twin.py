@@ -1,9 +1,12 @@
-"""The twin in closed loop: ``reset(scenario, seed)``, then ``step(joint command)`` per frame.
+"""The twin in closed loop, a :class:`runtime.robot.Robot`: ``configure(scenario, seed)`` (or
+``reset(scenario, seed)``), then ``step(JointCommand)`` per frame.
 
-What a controller gets (:class:`Observation`): the image, the IMU samples since the last
-frame (gyro and accelerometer in the camera's optical frame, with noise), the encoder angles
-and the time. Ground truth (:class:`GroundTruth`) is kept apart for evaluation and recording;
-no controller is handed it.
+What a controller gets (:class:`runtime.robot.Observation`): the image (blurred, exposed and
+noisy as a real camera's, :mod:`.image_realism`), the IMU samples since the last frame (gyro and
+accelerometer in the camera's optical frame, with a real part's errors, :mod:`.imu_errors`), the
+encoder angles and the time. Ground truth (:class:`runtime.robot.Truth`, through the
+:class:`runtime.robot.TruthSource` methods ``truth()`` and ``landmarks()``) is kept apart for
+evaluation and recording; no controller is handed it.
 
 Physics: MuJoCo at 1 kHz. The wearer is kinematic (mocap bodies following the wearer's track);
 the head's three hinges are simulated, driven by position servos with the HS-50's force limit
@@ -13,14 +16,17 @@ first and is ramped over the frame period as the servo's controller does.
 The IMU is derived from the simulated camera trajectory by central differences at the physics
 rate (angular rate from consecutive orientations, specific force from the second difference of
 position minus gravity): MuJoCo's own IMU sensors cannot see a mocap parent's motion, and the
-wearer's motion is what the IMU must sense.
+wearer's motion is what the IMU must sense. The run's IMU errors are applied to that truth.
+
+A run has two seeds: the run's (``seed``: motion variation, sensor noise and errors, the
+operator's clicks; independent streams, see ``*_STREAM``) and the scene's (``scene_seed``:
+the place's textures and layout, by default the run's).
 """
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from typing import Callable
 
 import cv2
@@ -32,6 +38,9 @@ from kinematics import HeadGeometry, JOINT_NAMES, ServoFilter, gaze_at_point
 from kinematics.camera import CameraIntrinsics
 from kinematics.mjcf import R_OPT_MJCAM
 
+from ..robot import JOINTS_MEASURED, ImuSamples, JointCommand, Observation, RobotInfo, Truth
+from .image_realism import CAMERA_SENSOR, CameraSensor, Exposure
+from .imu_errors import BMI088, ImuErrors, ImuSpec
 from .mount import Mount
 from .render import ImageFormation, image_formation
 from .scenarios import Scenario, get_scenario
@@ -39,6 +48,9 @@ from .scene import CARD_BODY, HEAD_PREFIX, OCCLUDER_BODY, TIMESTEP, WEARER_PREFI
 from .wearer import Wearer
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+#: Independent random streams drawn from a run's seed, one per use, so that adding one leaves
+#: the others (and the white sensor noise of ``default_rng(seed)``) as they were.
+MOTION_STREAM, IMU_STREAM, CAMERA_STREAM, CLICK_STREAM = 1, 2, 3, 4
 
 
 def _egl_display_ready() -> None:
@@ -58,34 +70,12 @@ def _egl_display_ready() -> None:
         EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
 
 
-@dataclass
-class Observation:
-    """What a controller may see after a step.
-
-    t : s. image : (H, W, 3) uint8 RGB. imu : (K, 7) rows [t, wx, wy, wz, ax, ay, az] (rad/s,
-    m/s^2, optical frame) since the previous observation. encoders : (3,) joint angles, rad.
-    """
-
-    t: float
-    image: np.ndarray
-    imu: np.ndarray
-    encoders: np.ndarray
-
-
-@dataclass
-class GroundTruth:
-    """Evaluation only. T_world_cam : (4, 4) optical frame to world. q : (3,) true joint angles.
-    T_world_mount : (4, 4) the head's mount frame. command : (3,) what the servos were sent."""
-
-    t: float
-    T_world_cam: np.ndarray
-    q: np.ndarray
-    T_world_mount: np.ndarray
-    command: np.ndarray
+#: The twin's truth record (the Robot seam's :class:`runtime.robot.Truth`).
+GroundTruth = Truth
 
 
 class Twin:
-    """Wearer + head + workbench in MuJoCo.
+    """Wearer + head + a place (workbench, kitchen counter, office desk) in MuJoCo.
 
     Parameters
     ----------
@@ -94,11 +84,21 @@ class Twin:
         shoulder mount).
     wearer_for : callable (scenario, seconds) -> :class:`Wearer` in world coordinates.
     frame_rate, imu_rate : Hz. gyro_noise, accel_noise, encoder_noise : standard deviations.
+    imu : the IMU's error model (:mod:`runtime.twin.imu_errors`): a constant bias per run, its
+        random walk, white noise at the data sheet's density, scale and cross-axis errors and a
+        clock offset; None gives an ideal IMU with white noise ``gyro_noise``, ``accel_noise``.
+    camera_sensor : what a real camera adds to the renders (:mod:`runtime.twin.image_realism`):
+        motion blur over the exposure, auto-exposure with a lag, shot and read noise on 8 bits;
+        None gives the clean renders.
+    motion_variation : each run's seed moves the body and varies the gaze sweeps a little
+        (:meth:`Scenario.varied`); False runs the scenario exactly as named.
     """
 
     def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, mount: Mount | Callable[[Wearer], Mount],
                  wearer_for: Callable[[Scenario, float], Wearer], frame_rate: float = 30.0, imu_rate: float = 200.0,
-                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0):
+                 gyro_noise: float = 0.002, accel_noise: float = 0.02, encoder_noise: float = 0.0,
+                 imu: ImuSpec | None = BMI088, camera_sensor: CameraSensor | None = CAMERA_SENSOR,
+                 motion_variation: bool = True):
         self.head = head
         self.camera = camera
         self._mount = mount
@@ -107,20 +107,57 @@ class Twin:
         self.steps_per_frame = int(round(1.0 / (frame_rate * TIMESTEP)))
         self.steps_per_imu = int(round(1.0 / (imu_rate * TIMESTEP)))
         self.noise = (gyro_noise, accel_noise, encoder_noise)
+        self.imu_spec = imu
+        self.imu_errors: ImuErrors | None = None
+        self.camera_sensor = camera_sensor
+        self.exposure: Exposure | None = None
+        self.motion_variation = motion_variation
         self.formation: ImageFormation = image_formation(camera)
         self.model = None
         self.renderer = None
+        self._config = None          # (scenario, seed, seconds, scene_seed) for reset() without arguments
+
+    # ------------------------------------------------------------------ the Robot seam
+    @property
+    def info(self) -> RobotInfo:
+        return RobotInfo(head=self.head, camera=self.camera, frame_rate=self.frame_rate,
+                         speed_limit=self.head.max_speed, name="twin")
+
+    def configure(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
+                  scene_seed: int | None = None) -> "Twin":
+        """Choose what :meth:`reset` (without arguments, as the Robot protocol calls it) builds."""
+        self._config = (get_scenario(scenario), int(seed), seconds, scene_seed)
+        return self
 
     # ------------------------------------------------------------------ set-up
-    def reset(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
-              q0=None) -> Observation:
+    def reset(self, scenario: str | Scenario | None = None, seed: int | None = None, seconds: float | None = None,
+              q0=None, scene_seed: int | None = None) -> Observation:
         """Build the scene for a scenario and seed; returns the first observation (t = 0).
+        Without a scenario, the one :meth:`configure` chose.
 
-        ``q0`` : initial joint angles (default: the scripted gaze's first fixation)."""
+        ``seed`` : the run (motion variation, sensor noise). ``scene_seed`` : the place (textures,
+        object layout); default the run's seed. ``q0`` : initial joint angles (default: the
+        scripted gaze's first fixation)."""
+        if scenario is None:
+            if self._config is None:
+                raise ValueError("the twin has no scenario: call configure(scenario, seed) or reset(scenario, seed)")
+            scenario, seed0, seconds0, scene_seed0 = self._config
+            seed = seed0 if seed is None else seed
+            seconds = seconds0 if seconds is None else seconds
+            scene_seed = scene_seed0 if scene_seed is None else scene_seed
+        seed = 0 if seed is None else seed
         sc = get_scenario(scenario)
+        if self.motion_variation:
+            sc = sc.varied(np.random.default_rng([seed, MOTION_STREAM]))
         self.scenario = sc
+        self.seed = seed
+        self.scene_seed = seed if scene_seed is None else int(scene_seed)
         self.seconds = sc.seconds if seconds is None else float(seconds)
         self.rng = np.random.default_rng(seed)
+        self.imu_errors = None if self.imu_spec is None else ImuErrors.draw(
+            self.imu_spec, 1.0 / (self.steps_per_imu * TIMESTEP), np.random.default_rng([seed, IMU_STREAM]))
+        self.exposure = None if self.camera_sensor is None else Exposure(
+            self.camera_sensor, self.formation, 1.0 / self.frame_rate, np.random.default_rng([seed, CAMERA_STREAM]))
         self.wearer = self.wearer_for(sc, self.seconds + 1.0)
         self.mount = self._mount(self.wearer) if callable(self._mount) else self._mount
         self.ms = self.wearer.index(self.mount.segment)
@@ -132,8 +169,8 @@ class Twin:
             c, s = math.cos(sc.body_yaw), math.sin(sc.body_yaw)
             back = np.array([-s, c]) * (thigh + 0.05)       # the body's +y (behind it) in the world
             stool = (sc.body_xy[0] + back[0], sc.body_xy[1] + back[1], j[self.wearer.index("shank_l"), 2] - 0.1)
-        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.bench, seed,
-                                  stool=stool, moving_card=sc.moving_card)
+        xml, assets = build_scene(self.head, self.formation.render_camera, self.wearer, self.mount, sc.scene,
+                                  self.scene_seed, stool=stool, moving_card=sc.moving_card)
         self._close_renderer()
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
@@ -183,20 +220,32 @@ class Twin:
     def t(self) -> float:
         return self.k * TIMESTEP
 
-    def step(self, q_command) -> Observation:
-        """Send one joint command (3,) rad; advance one frame period; return the next observation."""
+    def step(self, command, profile=None) -> Observation:
+        """Send one joint command (a :class:`JointCommand`, or (3,) rad); advance one frame
+        period; return the next observation.
+
+        ``profile`` : optional (steps_per_frame, 3) servo inputs, one per physics step, instead
+        of the linear ramp to the command (the hardware-in-the-loop Maestro's ramped outputs);
+        each passes the servo filter at the physics rate."""
         if self.model is None:
             raise RuntimeError("call reset(scenario, seed) first")
+        q_command = command.q if isinstance(command, JointCommand) else command
         dt = self.steps_per_frame * TIMESTEP
-        cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
+        if profile is None:
+            cmd = self.filter.step(q_command, dt)   # hard limits: range and servo speed
+            start = self._cmd_prev
+            ramp = [(1 - i / self.steps_per_frame) * start + i / self.steps_per_frame * cmd
+                    for i in range(1, self.steps_per_frame + 1)]
+        else:
+            profile = np.asarray(profile, float).reshape(self.steps_per_frame, 3)
+            ramp = [self.filter.step(p, TIMESTEP) for p in profile]
+            cmd = ramp[-1]
         self._command = cmd
-        start = self._cmd_prev
         self.set_light(self.scenario.light_at(self.t, self.seconds))
         if self.k + self.steps_per_frame >= len(self.step_times):
             raise RuntimeError(f"the scenario was prepared for {self.seconds:g} s; reset with a longer 'seconds'")
         for i in range(1, self.steps_per_frame + 1):
-            a = i / self.steps_per_frame
-            self.data.ctrl[:] = (1 - a) * start + a * cmd
+            self.data.ctrl[:] = ramp[i - 1]
             # The step integrates from the state at k with the wearer where it is at k.
             mujoco.mj_step(self.model, self.data)
             self.k += 1
@@ -236,30 +285,77 @@ class Twin:
 
     def _imu_samples(self) -> np.ndarray:
         """IMU rows for every sample time k (multiple of steps_per_imu) with k + 1 recorded."""
+        if self.imu_errors is not None:
+            return self._measured_imu_samples()
         rows = []
         while self._imu_next + 1 <= self.k:
             k = self._imu_next
-            if k == 0:
-                km, kp = 0, 1                     # one-sided at the very start
-            else:
-                km, kp = k - 1, k + 1
-            h = (kp - km) * TIMESTEP
-            w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
-            if k == 0:
-                a_world = np.zeros(3)             # at rest at t = 0
-            else:
-                a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
-            f = self.cam_R[k].T @ (a_world - GRAVITY)
+            w, f = self._true_imu(k)
             g_n, a_n, _ = self.noise
             rows.append([k * TIMESTEP, *(w + self.rng.normal(0, g_n, 3)), *(f + self.rng.normal(0, a_n, 3))])
             self._imu_next += self.steps_per_imu
         return np.array(rows).reshape(-1, 7)
 
+    def _true_imu(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(angular rate (3,) rad/s, specific force (3,) m/s^2) in the optical frame at physics
+        step k, by central differences (needs step k + 1 recorded)."""
+        if k == 0:
+            km, kp = 0, 1                     # one-sided at the very start
+        else:
+            km, kp = k - 1, k + 1
+        h = (kp - km) * TIMESTEP
+        w = Rotation.from_matrix(self.cam_R[km].T @ self.cam_R[kp]).as_rotvec() / h
+        if k == 0:
+            a_world = np.zeros(3)             # at rest at t = 0
+        else:
+            a_world = (self.cam_p[kp] - 2 * self.cam_p[k] + self.cam_p[km]) / TIMESTEP**2
+        return w, self.cam_R[k].T @ (a_world - GRAVITY)
+
+    def _measured_imu_samples(self) -> np.ndarray:
+        """IMU rows through the run's error model: each sample stamped k (IMU clock) is the truth
+        at camera time k - time_offset (interpolated between physics steps), then biased,
+        scaled, misaligned and noisy."""
+        e = self.imu_errors
+        stamps, w_true, f_true = [], [], []
+        while True:
+            k = self._imu_next
+            j = max(k - e.time_offset_s / TIMESTEP, 0.0)   # the physics step (fractional) it was taken at
+            j0 = int(math.floor(j))
+            frac = j - j0
+            if j0 + (2 if frac > 1e-9 else 1) > self.k:
+                break
+            w0, f0 = self._true_imu(j0)
+            if frac > 1e-9:
+                w1, f1 = self._true_imu(j0 + 1)
+                w0, f0 = (1 - frac) * w0 + frac * w1, (1 - frac) * f0 + frac * f1
+            stamps.append(k * TIMESTEP)
+            w_true.append(w0)
+            f_true.append(f0)
+            self._imu_next += self.steps_per_imu
+        if not stamps:
+            return np.zeros((0, 7))
+        w, f = e.measure(np.array(stamps), np.array(w_true), np.array(f_true))
+        return np.column_stack([stamps, w, f])
+
     def _observe(self) -> Observation:
         self.renderer.update_scene(self.data, camera=self.cam_id)
-        img = self.formation.form(self.renderer.render())
+        rendered = self.renderer.render()
+        img = self.formation.form(rendered) if self.exposure is None else \
+            self.exposure.image(rendered, self._rotation_over_half_exposure())
         enc = self.data.qpos[self.qadr] + self.rng.normal(0, self.noise[2], 3) if self.noise[2] else self.data.qpos[self.qadr].copy()
-        return Observation(t=self.t, image=img, imu=self._imu_samples(), encoders=np.array(enc))
+        return Observation(t=self.t, image=img, imu=ImuSamples.from_rows(self._imu_samples()), q=np.array(enc),
+                           q_source=JOINTS_MEASURED)
+
+    def _rotation_over_half_exposure(self) -> np.ndarray:
+        """(3,) rad: the rotation vector of R_world_cam(t)^T R_world_cam(t - T/2) for the
+        exposure T, from the recorded camera track (scaled from the nearest whole physics step;
+        zero at the start)."""
+        half = 0.5 * self.camera_sensor.exposure_s
+        k0 = max(self.k - max(1, int(round(half / TIMESTEP))), 0)
+        if k0 == self.k:
+            return np.zeros(3)
+        phi = Rotation.from_matrix(self.cam_R[self.k].T @ self.cam_R[k0]).as_rotvec()
+        return phi * (half / ((self.k - k0) * TIMESTEP))
 
     # ------------------------------------------------------------------ truth (evaluation only)
     def render_depth(self) -> np.ndarray:
@@ -274,6 +370,14 @@ class Twin:
             self.renderer.disable_depth_rendering()
         return self.formation.form(z, cv2.INTER_NEAREST)
 
+
+    def truth(self) -> Truth:
+        """The :class:`runtime.robot.TruthSource` view: this moment's truth (scoring only)."""
+        return self.ground_truth
+
+    def landmarks(self) -> dict[str, np.ndarray]:
+        """Named world points of the scene for scoring: the known rectangle's corners (4, 3)."""
+        return {"target_corners": self.scenario.scene.target_corners()}
 
     @property
     def ground_truth(self) -> GroundTruth:

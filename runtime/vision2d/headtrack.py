@@ -1,6 +1,7 @@
-"""Head tracking and servoing (paper section 3, item 2, Fig. 5): follow a person's head (a remote
-operator, or a person whose attention the wearable follows) and give its yaw, pitch and roll, which
-:func:`head_to_joint_targets` maps onto the wearable's own joints ("slaving", Fig. 5a).
+"""Head tracking (paper section 3, item 2, Fig. 5): follow a person's head (a remote operator, or a
+person whose attention the wearable follows) and give its yaw, pitch and roll, which
+:func:`runtime.gaze.slaving.head_to_joint_targets` maps onto the wearable's own joints
+("slaving", Fig. 5a). The head model and the pose conventions are :mod:`.headmodel`'s.
 
 The tracker follows Fig. 5b: a polyhedral shape model of the head with a learned colour model
 guiding a feature tracker.
@@ -11,8 +12,8 @@ guiding a feature tracker.
    head's pixels against the background's is the colour model (a ratio histogram, so background
    colours that also occur on the head are discounted). Shi-Tomasi corners inside the colour blob
    and on model faces facing the camera are back-projected onto the polyhedron (ray-polyhedron
-   intersection, vectorised Moller-Trumbore: :func:`intersect_rays`), giving each corner a 3D
-   model point.
+   intersection), giving each corner a 3D
+   model point (Embree ray casting, :class:`kinematics.rays.RayCaster`).
 2. **Each frame** (:meth:`HeadTracker.update`): the corners are tracked by pyramidal Lucas-Kanade
    with a forward-backward check, started from a constant-velocity prediction, and RANSAC over
    sample matches (``cv2.solvePnPRansac``) gives a first pose. Then the keyframes' corners are
@@ -22,7 +23,7 @@ guiding a feature tracker.
    on the keyframe matches alone when there are enough. Keyframes: the start frame (exact model
    points) and frames whose orientation is far from every earlier keyframe's; without them the
    pose drifts, because every corner back-projected later inherits the pose error of its frame
-   (in development: ~12 deg RMS yaw on the benchmark at 1 m without keyframes, ~1 with). Outliers,
+   (benchmarks/NOTES.md has the figures). Outliers,
    occluded points and points whose face has turned away are dropped; when too few are left (or
    every few frames) new corners are detected where the colour back projection says "head" and
    the model faces the camera, and back-projected with the new pose.
@@ -33,256 +34,21 @@ guiding a feature tracker.
    limitation, said here rather than hidden), corrected by the nearest keyframe's corners searched
    over a wider window when enough are found. That frame is reported lost and ``reinitialised``;
    tracking resumes on the next.
-
-Conventions (shared with :mod:`runtime.vision2d.headscene`)
-----------------------------------------------------------
-head frame
-    origin at the head's centre; x forward (out of the face, through the nose), y to the head's
-    own left, z up (the same axes as the wearable's mount frame).
-camera (optical) frame
-    x right, y down, z forward (kinematics.camera).
-neutral pose
-    the head facing the camera: head x = -z_cam, head y = +x_cam, head z = -y_cam
-    (:data:`R_CAM_REF`).
-yaw, pitch, roll (radians)
-    ``R_cam_head = R_CAM_REF @ Rz(yaw) @ Ry(-pitch) @ Rx(roll)`` (intrinsic z-y'-x''): yaw about
-    the head's vertical axis, positive turning to the person's own left; pitch about its
-    left-right axis, positive raising the chin (looking up); roll about its front-back axis,
-    positive lowering the right ear. Yaw 0 = facing the camera.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, project, unproject
+from kinematics.rays import RayCaster
+from kinematics.transforms import rotation_angle
 
-#: Columns: the neutral head's x (forward), y (left), z (up) axes in the optical frame.
-R_CAM_REF = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
-
-#: (depth x, width y, height z) of the default head, metres.
-DEFAULT_HEAD_SIZE_M = (0.20, 0.16, 0.24)
-
-
-# ---------------------------------------------------------------------------------------------
-# Pose conventions
-# ---------------------------------------------------------------------------------------------
-
-def _ypr_array(ypr, name: str = "ypr") -> np.ndarray:
-    a = np.asarray(ypr, dtype=float)
-    if a.shape[-1:] != (3,) or a.ndim > 2:
-        raise ValueError(f"{name} must be (3,) or (N, 3) yaw, pitch, roll in radians, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} has NaN or infinite angles; give finite radians")
-    return a
-
-
-def rotation_from_ypr(ypr) -> np.ndarray:
-    """``R_cam_head`` (3, 3) or (N, 3, 3) of yaw, pitch, roll (3,) or (N, 3), radians
-    (module docstring for the convention)."""
-    a = _ypr_array(ypr)
-    flat = a.reshape(-1, 3)
-    R_ref_head = Rotation.from_euler("ZYX", np.column_stack([flat[:, 0], -flat[:, 1], flat[:, 2]])).as_matrix()
-    R = R_CAM_REF @ R_ref_head
-    return R[0] if a.ndim == 1 else R
-
-
-def ypr_from_rotation(R_cam_head) -> np.ndarray:
-    """(yaw, pitch, roll) (3,) or (N, 3), radians, of ``R_cam_head`` (3, 3) or (N, 3, 3)."""
-    R = np.asarray(R_cam_head, dtype=float)
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R_cam_head must be (3, 3) or (N, 3, 3), got shape {R.shape}")
-    flat = R.reshape(-1, 3, 3)
-    e = Rotation.from_matrix(R_CAM_REF.T @ flat).as_euler("ZYX")
-    out = np.column_stack([e[:, 0], -e[:, 1], e[:, 2]])
-    return out[0] if R.ndim == 2 else out
-
-
-def head_pose(ypr=(0.0, 0.0, 0.0), distance_m: float = 1.0, offset_m=(0.0, 0.0)) -> np.ndarray:
-    """``T_cam_head`` (4, 4) or (N, 4, 4): the head at yaw, pitch, roll ``ypr`` (radians), its centre
-    ``distance_m`` in front of the camera, shifted by ``offset_m`` = (x right, y down) metres."""
-    if not (np.isfinite(distance_m) and distance_m > 0):
-        raise ValueError(f"distance_m must be a positive number of metres, got {distance_m}")
-    R = rotation_from_ypr(ypr)
-    off = np.asarray(offset_m, float)
-    if off.shape != (2,):
-        raise ValueError(f"offset_m must be (x, y) metres in the image plane, got shape {off.shape}")
-    T = np.zeros(R.shape[:-2] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = [off[0], off[1], distance_m]
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def rotation_error_rad(R_a, R_b) -> np.ndarray:
-    """Geodesic angle (radians) between rotations (3, 3) or (N, 3, 3): ``|log(R_a^T R_b)|``."""
-    Ra = np.asarray(R_a, float).reshape(-1, 3, 3)
-    Rb = np.asarray(R_b, float).reshape(-1, 3, 3)
-    c = (np.einsum("nji,nji->n", Ra, Rb) - 1.0) / 2.0  # trace(Ra^T Rb)
-    out = np.arccos(np.clip(c, -1.0, 1.0))
-    return out[0] if np.ndim(R_a) == 2 and np.ndim(R_b) == 2 else out
-
-
-# ---------------------------------------------------------------------------------------------
-# The polyhedral head model
-# ---------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class HeadModel:
-    """A polyhedral head in the head frame (module docstring).
-
-    vertices : (V, 3) float, metres. faces : (F, 3) int, counter-clockwise seen from outside
-    (outward normals). uv : (V, 2) float texture coordinates in [0, 1] (u around the head from
-    the back through the face, v from chin to crown), or None. landmarks : name -> (3,) points
-    on the surface, metres (``nose_tip``, ``left_eye``, ``right_eye``, ``mouth`` for the default head).
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    uv: np.ndarray | None = None
-    landmarks: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        V = np.asarray(self.vertices, float)
-        F = np.asarray(self.faces)
-        if V.ndim != 2 or V.shape[1] != 3 or len(V) < 4 or not np.all(np.isfinite(V)):
-            raise ValueError(f"HeadModel.vertices must be (V >= 4, 3) finite metres, got shape {V.shape}")
-        if F.ndim != 2 or F.shape[1] != 3 or len(F) < 4 or not np.issubdtype(F.dtype, np.integer):
-            raise ValueError(f"HeadModel.faces must be (F >= 4, 3) integer vertex indices, got shape {F.shape}")
-        if F.min() < 0 or F.max() >= len(V):
-            raise ValueError(f"HeadModel.faces index vertices 0..{len(V) - 1}, found {F.min()}..{F.max()}")
-        object.__setattr__(self, "vertices", V)
-        object.__setattr__(self, "faces", F.astype(np.int64))
-        if self.uv is not None:
-            uv = np.asarray(self.uv, float)
-            if uv.shape != (len(V), 2):
-                raise ValueError(f"HeadModel.uv must be (V, 2) = ({len(V)}, 2), got {uv.shape}")
-            object.__setattr__(self, "uv", uv)
-        tri = V[F]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        area2 = np.linalg.norm(n, axis=1)
-        # Degenerate faces (zero area) get a zero normal and are never hit by a ray.
-        object.__setattr__(self, "face_normals", np.divide(n, area2[:, None], out=np.zeros_like(n),
-                                                           where=area2[:, None] > 0))
-        object.__setattr__(self, "face_centres", tri.mean(axis=1))
-
-    @property
-    def extent_m(self) -> np.ndarray:
-        """(3,) size along the head's x, y, z, metres."""
-        return self.vertices.max(axis=0) - self.vertices.min(axis=0)
-
-
-def polyhedral_head(size_m=DEFAULT_HEAD_SIZE_M, n_lon: int = 16, n_lat: int = 9,
-                    nose_m: float = 0.025) -> HeadModel:
-    """An ellipsoid-like convex polyhedron (a latitude-longitude grid, ``2 n_lon (n_lat - 1)``
-    faces; 256 by default) of size ``size_m`` = (depth, width, height) metres with a pyramidal
-    nose pushed ``nose_m`` out of the face just below the centre, so that no pose is symmetric.
-
-    The grid's seam (where u wraps) is at the back of the head and the poles are split per
-    column, so each vertex has one texture coordinate: u = (longitude + pi) / 2 pi (0.5 = the
-    face), v = (latitude + pi/2) / pi.
-    """
-    size = np.asarray(size_m, float)
-    if size.shape != (3,) or not np.all(size > 0):
-        raise ValueError(f"size_m must be (depth, width, height) > 0 metres, got {size_m}")
-    if n_lon < 8 or n_lon % 2 or n_lat < 4:
-        raise ValueError(f"n_lon must be even and >= 8 and n_lat >= 4 (got {n_lon}, {n_lat})")
-    a, b, c = size / 2.0
-    lon = -math.pi + 2.0 * math.pi * np.arange(n_lon + 1) / n_lon
-    lat = -math.pi / 2 + math.pi * np.arange(n_lat + 1) / n_lat
-    LAT, LON = np.meshgrid(lat, lon, indexing="ij")  # (n_lat+1, n_lon+1)
-    V = np.stack([a * np.cos(LAT) * np.cos(LON), b * np.cos(LAT) * np.sin(LON), c * np.sin(LAT)], -1)
-    uv = np.stack([(LON + math.pi) / (2 * math.pi), (LAT + math.pi / 2) / math.pi], -1)
-    idx = np.arange((n_lat + 1) * (n_lon + 1)).reshape(n_lat + 1, n_lon + 1)
-    # The nose: the front column's vertex nearest 10 degrees below the centre, pushed forward;
-    # the one above (the bridge) a little.
-    front = n_lon // 2
-    j_tip = int(np.argmin(np.abs(lat - math.radians(-10.0))))
-    V[j_tip, front, 0] += nose_m
-    if j_tip + 1 < n_lat:
-        V[j_tip + 1, front, 0] += 0.3 * nose_m
-    faces = []
-    for j in range(n_lat):
-        for i in range(n_lon):
-            p, q, r, s = idx[j, i], idx[j, i + 1], idx[j + 1, i + 1], idx[j + 1, i]
-            if j > 0:  # the bottom band's p, q are both the south pole
-                faces.append((p, q, r))
-            if j < n_lat - 1:  # the top band's r, s are both the north pole
-                faces.append((p, r, s))
-    V = V.reshape(-1, 3)
-    landmarks = {"nose_tip": V[idx[j_tip, front]].copy()}
-    model = HeadModel(V, np.array(faces, np.int64), uv.reshape(-1, 2), landmarks)
-    # Eyes and mouth: the surface points carrying the texture coordinates where the test texture
-    # (headscene) draws them.
-    for name, (lo, la) in FACE_FEATURES_DEG.items():
-        u = (math.radians(lo) + math.pi) / (2 * math.pi)
-        v = (math.radians(la) + math.pi / 2) / math.pi
-        model.landmarks[name] = surface_point_at_uv(model, (u, v))
-    return model
-
-
-def surface_point_at_uv(model: HeadModel, uv) -> np.ndarray:
-    """(3,) the point of ``model``'s surface (head frame, metres) whose interpolated texture
-    coordinate is ``uv`` = (u, v); raises if no face's texture triangle contains it."""
-    if model.uv is None:
-        raise ValueError("this HeadModel has no texture coordinates (uv)")
-    p = np.asarray(uv, float)
-    T = model.uv[model.faces]                                  # (F, 3, 2)
-    e1, e2, d = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], p - T[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
-        b2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
-    inside = (np.abs(det) > 1e-15) & (b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1 + 1e-9)
-    if not inside.any():
-        raise ValueError(f"no face of the model has texture coordinate {tuple(p)}")
-    f = int(np.flatnonzero(inside)[0])
-    X = model.vertices[model.faces[f]]
-    return X[0] + b1[f] * (X[1] - X[0]) + b2[f] * (X[2] - X[0])
-
-
-#: (longitude, latitude) degrees of the face features the test texture draws (headscene), as seen
-#: from the head's centre; eyes at +-30 deg longitude (left eye on the head's left, +y).
-FACE_FEATURES_DEG = {"left_eye": (30.0, 5.0), "right_eye": (-30.0, 5.0), "mouth": (0.0, -32.0)}
-
-
-def intersect_rays(vertices, faces, origins, directions, eps: float = 1e-12):
-    """Nearest hit of each ray on a triangle mesh (Moller-Trumbore, vectorised over rays x faces).
-
-    vertices : (V, 3) float; faces : (F, 3) int; origins, directions : (n, 3) float, any units
-    (directions need not be unit). Returns ``t`` (n,) float, the ray parameter of the nearest hit
-    with t > 0 (NaN where the ray misses), and ``face`` (n,) int, the face hit (-1 for a miss).
-    Both sides of a face count.
-    """
-    V = np.asarray(vertices, float)
-    F = np.asarray(faces)
-    O = np.asarray(origins, float).reshape(-1, 3)
-    D = np.asarray(directions, float).reshape(-1, 3)
-    if len(O) != len(D):
-        raise ValueError(f"origins ({len(O)}) and directions ({len(D)}) must have the same number of rays")
-    if len(O) == 0:
-        return np.zeros(0), np.zeros(0, np.int64)
-    v0, e1, e2 = V[F[:, 0]], V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
-    P = np.cross(D[:, None, :], e2[None])                       # (n, F, 3)
-    det = np.einsum("nfk,fk->nf", P, e1)
-    ok = np.abs(det) > eps
-    inv = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
-    S = O[:, None, :] - v0[None]
-    u = np.einsum("nfk,nfk->nf", S, P) * inv
-    Q = np.cross(S, e1[None])
-    v = np.einsum("nk,nfk->nf", D, Q) * inv
-    t = np.einsum("nfk,fk->nf", Q, e2) * inv
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > eps)
-    t = np.where(hit, t, np.inf)
-    face = np.argmin(t, axis=1)
-    tmin = t[np.arange(len(O)), face]
-    miss = ~np.isfinite(tmin)
-    return np.where(miss, np.nan, tmin), np.where(miss, -1, face)
+from .headmodel import HeadModel, polyhedral_head, ypr_from_rotation
 
 
 # ---------------------------------------------------------------------------------------------
@@ -377,13 +143,13 @@ class HeadTrackerConfig:
 
 @dataclass
 class _Keyframe:
-    """A frame kept for re-finding its corners: grey image (H, W) uint8, its pose T (4, 4) and its
-    corners' model points X (m, 3) and face normals N (m, 3), head frame."""
+    """A frame kept for re-finding its corners: grey image (H, W) uint8, its pose T_cam_head
+    (4, 4) and its corners' model points (m, 3) and face normals (m, 3), head frame."""
 
-    gray: np.ndarray
-    T: np.ndarray
-    X: np.ndarray
-    N: np.ndarray
+    grey: np.ndarray
+    T_cam_head: np.ndarray
+    points_head: np.ndarray
+    normals_head: np.ndarray
 
 
 @dataclass
@@ -462,6 +228,7 @@ class HeadTracker:
             # solvePnP knows only OpenCV's brown model: give it undistorted (pinhole) pixels.
             self.dist = np.zeros(5)
             self._undistort_points = True
+        self._rays = RayCaster(self.model.vertices, self.model.faces)
         self._started = False
         self.counts = {"frames": 0, "lost": 0, "bad_frames": 0, "reinitialisations": 0}
 
@@ -574,7 +341,7 @@ class HeadTracker:
         return cv2.morphologyEx(m, cv2.MORPH_CLOSE, kernel)
 
     # -- features --
-    def _detect(self, gray, mask, existing: np.ndarray, n_max: int) -> np.ndarray:
+    def _detect(self, grey, mask, existing: np.ndarray, n_max: int) -> np.ndarray:
         c = self.config
         if n_max <= 0:
             return np.zeros((0, 2), np.float32)
@@ -582,10 +349,10 @@ class HeadTracker:
         for p in existing:
             if np.all(np.isfinite(p)):
                 cv2.circle(mask, (int(round(p[0])), int(round(p[1]))), int(c.min_distance_px * 2), 0, -1)
-        pts = cv2.goodFeaturesToTrack(gray, n_max, c.quality_level, c.min_distance_px, mask=mask, blockSize=5)
+        pts = cv2.goodFeaturesToTrack(grey, n_max, c.quality_level, c.min_distance_px, mask=mask, blockSize=5)
         if pts is None:
             return np.zeros((0, 2), np.float32)
-        pts = cv2.cornerSubPix(gray, pts, (3, 3), (-1, -1),
+        pts = cv2.cornerSubPix(grey, pts, (3, 3), (-1, -1),
                                (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.03))
         return pts.reshape(-1, 2)
 
@@ -597,11 +364,11 @@ class HeadTracker:
         region = cv2.erode(region, np.ones((5, 5), np.uint8))
         return cv2.bitwise_and(region, self._colour_mask(prob))
 
-    def _add_features(self, gray, prob, T_cam_head) -> int:
+    def _add_features(self, grey, prob, T_cam_head) -> int:
         """Detect corners where the head is, away from those tracked, back-project them with the
         current pose and append them as unanchored tracks; returns how many were added."""
         mask = self._feature_mask(prob, T_cam_head)
-        new = self._detect(gray, mask, self.pts2d, self.config.max_features - len(self.pts2d))
+        new = self._detect(grey, mask, self.pts2d, self.config.max_features - len(self.pts2d))
         if len(new) == 0:
             return 0
         X, ok = self.back_project(new, T_cam_head)
@@ -618,7 +385,7 @@ class HeadTracker:
         rays = self._pixels_to_rays(uv)
         origins = np.broadcast_to(-R.T @ t, rays.shape)
         dirs = rays @ R
-        s, face = intersect_rays(self.model.vertices, self.model.faces, origins, dirs)
+        s, face = self._rays.first_hit(origins, dirs)
         ok = face >= 0
         facing = self._facing(R, t)
         ok &= np.where(ok, facing[np.maximum(face, 0)] >= self.config.min_facing, False)
@@ -626,7 +393,7 @@ class HeadTracker:
         X[~ok] = np.nan
         return X, face, ok
 
-    def _make_keyframe(self, gray, prob, T_cam_head) -> int:
+    def _make_keyframe(self, grey, prob, T_cam_head) -> int:
         """Make this frame a keyframe: its corners' model points (back-projected with its pose)
         are re-found in later frames by matching its texture warped to the current pose, so the
         pose does not drift while a keyframe is in view. The start frame, whose pose is given, is
@@ -634,25 +401,25 @@ class HeadTracker:
         with, but that error no longer grows frame by frame."""
         c = self.config
         mask = self._feature_mask(prob, T_cam_head)
-        uv = self._detect(gray, mask, np.zeros((0, 2)), c.keyframe_features)
+        uv = self._detect(grey, mask, np.zeros((0, 2)), c.keyframe_features)
         X, face, ok = self._cast(uv, T_cam_head)
         if ok.sum() >= c.min_inliers:
-            self.keyframes.append(_Keyframe(gray.copy(), T_cam_head.copy(), X[ok], self.model.face_normals[face[ok]]))
+            self.keyframes.append(_Keyframe(grey.copy(), T_cam_head.copy(), X[ok], self.model.face_normals[face[ok]]))
         return int(ok.sum())
 
-    def _measure_keyframes(self, gray, T_cam_head, search_px: int):
+    def _measure_keyframes(self, grey, T_cam_head, search_px: int):
         """Keyframe matches near ``T_cam_head``: model points (m, 3) and pixels (m, 2), from the
         keyframes within ``keyframe_reach_rad`` of it, oldest first (the oldest carry the least
         error; the start frame's none) until ``max_keyframe_matches``; the nearest keyframe if
         none is within reach."""
         c = self.config
-        d = np.array([rotation_error_rad(k.T[:3, :3], T_cam_head[:3, :3]) for k in self.keyframes])
+        d = np.array([rotation_angle(k.T_cam_head[:3, :3], T_cam_head[:3, :3]) for k in self.keyframes])
         order = [i for i in range(len(d)) if d[i] <= c.keyframe_reach_rad] or [int(np.argmin(d))]
         Xs, uvs, n = [], [], 0
         for i in order:
             kf = self.keyframes[i]
-            idx, uv = self._measure_keyframe(kf, gray, T_cam_head, search_px)
-            Xs.append(kf.X[idx])
+            idx, uv = self._measure_keyframe(kf, grey, T_cam_head, search_px)
+            Xs.append(kf.points_head[idx])
             uvs.append(uv)
             n += len(idx)
             if n >= c.max_keyframe_matches:
@@ -660,33 +427,33 @@ class HeadTracker:
         return np.vstack(Xs), np.vstack(uvs)
 
     def _nearest_keyframe(self, T_cam_head) -> "_Keyframe":
-        d = [rotation_error_rad(k.T[:3, :3], T_cam_head[:3, :3]) for k in self.keyframes]
+        d = [rotation_angle(k.T_cam_head[:3, :3], T_cam_head[:3, :3]) for k in self.keyframes]
         return self.keyframes[int(np.argmin(d))]
 
-    def _measure_keyframe(self, kf: "_Keyframe", gray, T_cam_head, search_px: int):
-        """Find the keyframe's points in ``gray`` near their projections under ``T_cam_head``: the
+    def _measure_keyframe(self, kf: "_Keyframe", grey, T_cam_head, search_px: int):
+        """Find the keyframe's points in ``grey`` near their projections under ``T_cam_head``: the
         keyframe around each point is warped by the homography its model face induces between the
         keyframe and the current pose, and matched by normalised cross-correlation over
         +-``search_px``. Returns keyframe indices (m,) and pixels (m, 2)."""
         c = self.config
         r, s = c.template_radius_px, int(search_px)
-        R0, t0 = kf.T[:3, :3], kf.T[:3, 3]
+        R0, t0 = kf.T_cam_head[:3, :3], kf.T_cam_head[:3, 3]
         R, t = T_cam_head[:3, :3], T_cam_head[:3, 3]
-        Xc = kf.X @ R.T + t
-        n_c = kf.N @ R.T
+        Xc = kf.points_head @ R.T + t
+        n_c = kf.normals_head @ R.T
         facing = -np.einsum("nk,nk->n", n_c, Xc) / np.linalg.norm(Xc, axis=1)
         uv = project(self.camera, Xc)
-        H_img, W_img = gray.shape
+        H_img, W_img = grey.shape
         m = r + s + 2
         vis = (facing >= c.min_facing) & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= m) & \
             (uv[:, 0] < W_img - m) & (uv[:, 1] >= m) & (uv[:, 1] < H_img - m)
         idx = np.flatnonzero(vis)
-        idx = idx[self._unoccluded(kf.X[idx], T_cam_head)]
+        idx = idx[self._unoccluded(kf.points_head[idx], T_cam_head)]
         if len(idx) == 0:
             return idx, np.zeros((0, 2))
         # Plane of each point's face in the keyframe camera (n0 . x = d0); relative pose key -> now.
-        Xc0 = kf.X[idx] @ R0.T + t0
-        n0 = kf.N[idx] @ R0.T
+        Xc0 = kf.points_head[idx] @ R0.T + t0
+        n0 = kf.normals_head[idx] @ R0.T
         d0 = np.einsum("nk,nk->n", n0, Xc0)
         R_rel = R @ R0.T
         t_rel = t - R_rel @ t0
@@ -697,11 +464,11 @@ class HeadTracker:
         for k, i in enumerate(idx):
             ui = np.round(uv[i]).astype(int)
             shift = np.array([[1.0, 0.0, -(ui[0] - r)], [0.0, 1.0, -(ui[1] - r)], [0.0, 0.0, 1.0]])
-            tmpl = cv2.warpPerspective(kf.gray, shift @ Hs[k], (size, size), flags=cv2.INTER_LINEAR,
+            tmpl = cv2.warpPerspective(kf.grey, shift @ Hs[k], (size, size), flags=cv2.INTER_LINEAR,
                                        borderMode=cv2.BORDER_REPLICATE)
             if cv2.meanStdDev(tmpl)[1][0, 0] < 2.0:   # a flat template cannot be located
                 continue
-            win = gray[ui[1] - r - s: ui[1] + r + s + 1, ui[0] - r - s: ui[0] + r + s + 1]
+            win = grey[ui[1] - r - s: ui[1] + r + s + 1, ui[0] - r - s: ui[0] + r + s + 1]
             score = cv2.matchTemplate(win, tmpl, cv2.TM_CCOEFF_NORMED)
             _, best, _, (jx, jy) = cv2.minMaxLoc(score)
             if best < c.min_ncc or jx in (0, 2 * s) or jy in (0, 2 * s):
@@ -723,7 +490,7 @@ class HeadTracker:
             return np.zeros(0, bool)
         R, t = T_cam_head[:3, :3], T_cam_head[:3, 3]
         cam_h = -R.T @ t
-        s, _ = intersect_rays(self.model.vertices, self.model.faces, np.broadcast_to(cam_h, X.shape), X - cam_h)
+        s, _ = self._rays.first_hit(np.broadcast_to(cam_h, X.shape), X - cam_h)
         # s is the fraction of the way to the point where the first surface is met.
         return np.isfinite(s) & (s > 1.0 - 1e-3)
 
@@ -772,23 +539,23 @@ class HeadTracker:
         if silhouette.sum() == 0:
             raise ValueError("the head model projects outside the image at the given pose; check T_cam_head")
         self._learn_colour(hsv, silhouette)
-        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         prob = self._back_project(hsv)
         self.start_area_px = float(np.count_nonzero(self._colour_mask(prob) & silhouette))
         self.start_range_m = float(np.linalg.norm(T[:3, 3]))
         self.keyframes = []
-        n = self._make_keyframe(gray, prob, T)
+        n = self._make_keyframe(grey, prob, T)
         if n < self.config.min_inliers:
             raise ValueError(f"only {n} corners on the head at the start (need {self.config.min_inliers}); "
                              "check the pose, the lighting or lower HeadTrackerConfig.quality_level")
-        self.pts3d = self.keyframes[0].X.copy()
+        self.pts3d = self.keyframes[0].points_head.copy()
         self.pts2d = project(self.camera, self.pts3d @ R.T + T[:3, 3]).astype(np.float32)
         self.anchor = np.ones(n, bool)
         self.n_seen = np.ones(n)
-        self.prev_gray = gray
-        self.T = T.copy()
-        self.T_prev = T.copy()
-        self.T_good = T.copy()
+        self.prev_grey = grey
+        self.T_cam_head = T.copy()
+        self.T_cam_head_prev = T.copy()
+        self.T_cam_head_good = T.copy()
         self.lost = False
         self.frame = 0
         self.since_detect = 0
@@ -808,13 +575,13 @@ class HeadTracker:
             self.counts["bad_frames"] += 1
             return self._lose(why)
         img = np.ascontiguousarray(image)
-        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV)
         prob = self._back_project(hsv)
         if self.lost:
-            return self._reinitialise(gray, prob)
-        result = self._track(gray, prob)
-        self.prev_gray = gray
+            return self._reinitialise(grey, prob)
+        result = self._track(grey, prob)
+        self.prev_grey = grey
         return result
 
     def track(self, images, T_cam_head0) -> list[HeadPose]:
@@ -830,10 +597,10 @@ class HeadTracker:
         self.lost = True
         return _nan_pose(self.frame, reason, tracked, inliers)
 
-    def _track(self, gray, prob) -> HeadPose:
+    def _track(self, grey, prob) -> HeadPose:
         c = self.config
         # 1. Optical flow of every track, started from the constant-velocity prediction.
-        T_pred = self.T @ np.linalg.inv(self.T_prev) @ self.T
+        T_pred = self.T_cam_head @ np.linalg.inv(self.T_cam_head_prev) @ self.T_cam_head
         T_flow = None
         uv_flow, X_flow = np.zeros((0, 2)), np.zeros((0, 3))
         a_flow, s_flow = np.zeros(0, bool), np.zeros(0)
@@ -844,9 +611,9 @@ class HeadTracker:
             guess = project(self.camera, self.pts3d @ T_pred[:3, :3].T + T_pred[:3, 3]).astype(np.float32)
             bad = ~np.all(np.isfinite(guess), axis=1)
             guess[bad] = self.pts2d[bad]
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.prev_gray, gray, p0, guess.reshape(-1, 1, 2).copy(),
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.prev_grey, grey, p0, guess.reshape(-1, 1, 2).copy(),
                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.prev_gray, p1, p0.copy(),
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self.prev_grey, p1, p0.copy(),
                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < c.fb_max_px)
@@ -855,11 +622,11 @@ class HeadTracker:
             if len(uv_flow) >= c.min_inliers:
                 T_flow, _ = self._pnp(X_flow, uv_flow, T_pred)
         # 2. The nearest keyframe's points, found by warped-template matching near the flow's pose.
-        if T_flow is not None and rotation_error_rad(T_flow[:3, :3], self.T[:3, :3]) <= c.max_step_rad:
+        if T_flow is not None and rotation_angle(T_flow[:3, :3], self.T_cam_head[:3, :3]) <= c.max_step_rad:
             T_ref, search = T_flow, c.search_px
         else:
             T_ref, search = T_pred, 2 * c.search_px
-        kX, k_uv = self._measure_keyframes(gray, T_ref, search)
+        kX, k_uv = self._measure_keyframes(grey, T_ref, search)
         # 3. RANSAC over all matches: the keyframes' and the flow's unanchored tracks.
         free = ~a_flow
         X_all = np.vstack([kX, X_flow[free]])
@@ -872,7 +639,7 @@ class HeadTracker:
             return self._lose(f"too few corners tracked ({n_meas} < {c.min_inliers})", n_meas)
         T, inliers = self._pnp(X_all, uv_all, T_ref)
         n_in = 0 if inliers is None else int(inliers.sum())
-        step = np.inf if T is None else rotation_error_rad(T[:3, :3], self.T[:3, :3])
+        step = np.inf if T is None else rotation_angle(T[:3, :3], self.T_cam_head[:3, :3])
         if T is None or n_in < c.min_inliers or n_in < c.min_inlier_ratio * n_meas or step > c.max_step_rad \
                 or T[2, 3] <= 0:
             self._keep_tracks(uv_flow, X_flow, a_flow, s_flow)
@@ -901,20 +668,19 @@ class HeadTracker:
         # 5. Keep the inliers whose face still faces the camera (a corner rotating onto the
         # silhouette is about to be occluded or sheared).
         cam_h = -R.T @ T[:3, 3]
-        _, face = intersect_rays(self.model.vertices, self.model.faces,
-                                 np.broadcast_to(cam_h, X_all.shape), X_all - cam_h)
+        _, face = self._rays.first_hit(np.broadcast_to(cam_h, X_all.shape), X_all - cam_h)
         facing = self._facing(R, T[:3, 3])
         keep = inliers & (face >= 0) & (facing[np.maximum(face, 0)] >= 0.5 * c.min_facing)
         self._keep_tracks(uv_all[keep], X_all[keep], anchored[keep], seen[keep])
-        self.T_prev, self.T, self.T_good = self.T, T, T
+        self.T_cam_head_prev, self.T_cam_head, self.T_cam_head_good = self.T_cam_head, T, T
         # 6. A new keyframe when the head has turned away from every keyframe's view; new corners
         # where the tracks have thinned out.
-        if rotation_error_rad(self._nearest_keyframe(T).T[:3, :3], R) > c.keyframe_spacing_rad \
+        if rotation_angle(self._nearest_keyframe(T).T_cam_head[:3, :3], R) > c.keyframe_spacing_rad \
                 and len(self.keyframes) < c.max_keyframes:
-            self._make_keyframe(gray, prob, T)
+            self._make_keyframe(grey, prob, T)
         self.since_detect += 1
         if len(self.pts2d) < c.redetect_below * c.max_features or self.since_detect >= c.redetect_every:
-            self._add_features(gray, prob, T)
+            self._add_features(grey, prob, T)
             self.since_detect = 0
         return HeadPose(self.frame, False, ypr_from_rotation(R), T.copy(), n_in, n_meas)
 
@@ -924,7 +690,7 @@ class HeadTracker:
         self.anchor = np.asarray(anchored, bool)
         self.n_seen = np.minimum(np.asarray(seen, float), self.config.refine_memory)
 
-    def _reinitialise(self, gray, prob) -> HeadPose:
+    def _reinitialise(self, grey, prob) -> HeadPose:
         """Restart from the largest head-coloured blob (module docstring, item 3)."""
         c = self.config
         mask = self._colour_mask(prob)
@@ -942,72 +708,26 @@ class HeadTracker:
         rng = self.start_range_m * math.sqrt(self.start_area_px / area)
         ray = self._pixels_to_rays(centroids[k][None])[0]
         T = np.eye(4)
-        T[:3, :3] = self.T_good[:3, :3]
+        T[:3, :3] = self.T_cam_head_good[:3, :3]
         T[:3, 3] = ray / np.linalg.norm(ray) * rng
         self._keep_tracks(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0))
         # The nearest keyframe's points, searched widely around the guessed pose, correct it.
         kf = self._nearest_keyframe(T)
-        k_idx, k_uv = self._measure_keyframe(kf, gray, T, 3 * c.search_px)
+        k_idx, k_uv = self._measure_keyframe(kf, grey, T, 3 * c.search_px)
         if len(k_idx) >= c.min_inliers:
-            T_k, inl = self._pnp(kf.X[k_idx], k_uv, T)
+            T_k, inl = self._pnp(kf.points_head[k_idx], k_uv, T)
             if T_k is not None and inl.sum() >= c.min_inliers:
                 T = T_k
-                self._keep_tracks(k_uv[inl], kf.X[k_idx][inl], np.ones(int(inl.sum()), bool),
+                self._keep_tracks(k_uv[inl], kf.points_head[k_idx][inl], np.ones(int(inl.sum()), bool),
                                   np.full(int(inl.sum()), np.inf))
-        added = self._add_features(gray, prob, T)
+        added = self._add_features(grey, prob, T)
         self.counts["lost"] += 1
         if len(self.pts2d) < c.min_inliers:
             return _nan_pose(self.frame, f"lost: only {len(self.pts2d)} corners on the colour blob", added)
         self.counts["reinitialisations"] += 1
-        self.prev_gray = gray
-        self.T = self.T_prev = T
+        self.prev_grey = grey
+        self.T_cam_head = self.T_cam_head_prev = T
         self.lost = False
         self.since_detect = 0
         return _nan_pose(self.frame, "re-initialised from the colour blob (orientation assumed unchanged)",
                          len(self.pts2d), 0, reinit=True)
-
-
-# ---------------------------------------------------------------------------------------------
-# Servoing: slaving the wearable's head to the tracked head (Fig. 5a)
-# ---------------------------------------------------------------------------------------------
-
-def head_to_joint_targets(ypr, gain=1.0, limits=None, rest=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """Desired joint angles (radians) of the wearable's head that copy a tracked head's motion.
-
-    ypr : (3,) yaw, pitch, roll of the tracked head, radians (module docstring).
-    gain : scalar or (3,) per (yaw, pitch, roll); 1 copies the motion one to one.
-    limits : (2, 3) [[lower], [upper]] joint limits in radians in kinematics' joint order
-        (elevation, pan, cyclotorsion), or a HeadGeometry (its ``lower``/``upper``); None = no limits.
-    rest : (3,) joint angles (elevation, pan, cyclotorsion) that the offsets are added to.
-
-    Returns (3,) [elevation, pan, cyclotorsion] = rest + gain * [pitch, yaw, roll], clipped to the
-    limits: yaw -> pan (both positive to the left: the person turning to their left turns the
-    wearable to the wearer's left), pitch -> elevation (both positive up), roll -> cyclotorsion
-    (both positive right side down, about the forward axis). Pure function; the gaze controller's
-    rate limits and servo filter are applied downstream (runtime.gaze).
-    """
-    a = np.asarray(ypr, float)
-    if a.shape != (3,):
-        raise ValueError(f"ypr must be (3,) yaw, pitch, roll in radians, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError("ypr has NaN (a lost frame?); do not servo on a lost head pose")
-    g = np.broadcast_to(np.asarray(gain, float), (3,)) if np.ndim(gain) <= 1 else None
-    if g is None or not np.all(np.isfinite(g)):
-        raise ValueError(f"gain must be a finite scalar or (3,) per yaw, pitch, roll, got {gain!r}")
-    q0 = np.asarray(rest, float)
-    if q0.shape != (3,) or not np.all(np.isfinite(q0)):
-        raise ValueError(f"rest must be (3,) finite joint angles (elevation, pan, cyclotorsion), got {rest!r}")
-    q = q0 + g[[1, 0, 2]] * a[[1, 0, 2]]
-    if limits is None:
-        return q
-    if hasattr(limits, "lower") and hasattr(limits, "upper"):
-        lo, hi = np.asarray(limits.lower, float), np.asarray(limits.upper, float)
-    else:
-        L = np.asarray(limits, float)
-        if L.shape != (2, 3):
-            raise ValueError(f"limits must be (2, 3) [[lower], [upper]] radians in the order elevation, pan, "
-                             f"cyclotorsion (or a HeadGeometry), got shape {L.shape}")
-        lo, hi = L
-    if not np.all(lo <= hi):
-        raise ValueError(f"limits: every lower bound must be <= its upper bound, got {lo} and {hi}")
-    return np.clip(q, lo, hi)

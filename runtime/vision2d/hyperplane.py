@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 
 from . import images
+from .tracker import TrackResult
 
 MOTIONS = {"homography": 4, "affine": 3}   # motion model -> number of corners it displaces
 
@@ -121,28 +122,6 @@ class HyperplaneConfig:
             raise ValueError(f"blocks {self.blocks} must be between 1 and the grid {self.grid} in each direction")
         if self.iterations < 1:
             raise ValueError("iterations must be at least 1")
-
-
-@dataclass
-class TrackResult:
-    """One frame's output of a tracker.
-
-    polygon : (4, 2) float, pixels: the region's corners (template corners (0,0), (w,0), (w,h),
-        (0,h) mapped into the image), OpenCV convention (centre of pixel (0,0) at (0,0)).
-    centre : (2,) float, pixels: the template centre mapped into the image.
-    lost : True if the track is lost in this frame (polygon is then the last good one).
-    residual : the loss criterion's value (hyperplane: RMS normalised intensity error over kept
-        samples; mean shift: back-projection mass in the window relative to the first frame's).
-    inliers : share of the sampling pattern used (inside the image and not occluded).
-    reason : why the track is lost, None otherwise.
-    """
-
-    polygon: np.ndarray
-    centre: np.ndarray
-    lost: bool
-    residual: float
-    inliers: float = 1.0
-    reason: str | None = None
 
 
 @dataclass
@@ -370,6 +349,10 @@ class HyperplaneTracker:
     def polygon(self) -> np.ndarray:
         """(4, 2) current corners, pixels."""
         return apply_h(self.H_img_tmpl, self.corners_tmpl)
+
+    def start_result(self) -> TrackResult:
+        """The learned region as a result (residual 0: the reference itself)."""
+        return self._result(False, 0.0, 1.0, None)
 
     def _result(self, lost: bool, residual: float, inliers: float, reason: str | None) -> TrackResult:
         centre = apply_h(self.H_img_tmpl, np.array([[0.5 * self.size[0], 0.5 * self.size[1]]]))[0]

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .hyperplane import TrackResult, check_region
+from .hyperplane import check_region
+from .tracker import TrackResult
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,10 @@ class MeanShiftTracker:
         x, y, w, h = window
         patch = bp[y:y + h, x:x + w]
         return float(patch.mean()) / 255.0 if patch.size else 0.0
+
+    def start_result(self) -> TrackResult:
+        """The start window as a result (residual 1: all of the start's object colour)."""
+        return self._result(False, 1.0, None)
 
     def _result(self, lost: bool, residual: float, reason: str | None) -> TrackResult:
         poly = cv2.boxPoints(self.box).astype(np.float64)

@@ -13,7 +13,7 @@ import pytest
 
 from design.report import write_outputs
 from design.sweep import SweepStateError, open_client, run_sweep
-from design.sweep_file import dump_spec, load_sweep
+from design.sweep_file import CRITERIA, SweepFileError, dump_spec, load_sweep, spec_from_dict, spec_to_dict
 from kinematics import forward_kinematics, load_head
 
 
@@ -37,11 +37,19 @@ def test_sweep_writes_outputs_and_chosen_head_loads(tmp_path):
     assert len(rows) == 21
     assert {"working_volume_cm3", "self_collision", "integrated_torque", "max_torque_nm", "radius_elevation_mm",
             "radius_pan_mm", "radius_cyclotorsion_mm"} <= set(rows[0])
-    if s["front_size"]:
-        head = load_head(tmp_path / "chosen_head.toml")   # what kinematics, the twin and the runtime load
+    assert s.evaluations == 21 and s.evaluated == 21 and s.feasible == int(r.feasible.sum())
+    if s.front_size:
+        head = load_head(s.chosen.head_path)   # what kinematics, the twin and the runtime load
+        assert s.chosen.head_path == tmp_path / "chosen_head.toml"
         assert forward_kinematics(head, np.zeros(3)).T_mount_cam.shape == (4, 4)
         front = read_rows(tmp_path / "front.csv")
-        assert len(front) == s["front_size"]
+        assert len(front) == s.front_size
+        # The typed result is what the files hold: the chosen row's criteria, the report's table.
+        np.testing.assert_allclose([s.chosen.criteria[c] for c in CRITERIA], r.F[s.chosen.index])
+        assert f"{s.chosen.criteria['max_torque_nm']:.6g}" in (tmp_path / "report.md").read_text()
+    else:
+        assert s.chosen is None and "No feasible design" in (tmp_path / "report.md").read_text()
+    assert not (tmp_path / "INCOMPLETE").exists()
 
 
 def test_refusals(tmp_path):
@@ -105,3 +113,52 @@ def test_same_results_with_two_dask_workers(tmp_path):
 def test_random_variation_baseline_runs_on_the_same_budget(tmp_path):
     r = run_sweep(tiny_spec(14), tmp_path, algorithm="random", progress=False)
     assert len(r.F) == 14 and r.algorithm == "random"
+
+
+def test_bad_options_are_refused_before_any_work(tmp_path):
+    from design.study import optimise
+
+    spec = tiny_spec(7)
+    d = spec_to_dict(spec)
+    d["sweep"]["clearance_m"] = -1.0       # would make every design feasible
+    with pytest.raises(SweepFileError, match=r"clearance_m = -1.0 must be >= 0"):
+        spec_from_dict(d)
+    for kw, words in (({"evaluations": 0}, "at least 1 evaluation"), ({"workers": 0}, "at least 1 worker"),
+                      ({"scheduler": "localhost"}, "tcp://HOST:PORT"), ({"algorithm": "grid"}, "unknown algorithm")):
+        with pytest.raises(ValueError, match=words):
+            optimise(spec, tmp_path / "o", progress=False, **kw)
+        assert not (tmp_path / "o").exists()
+    # A scheduler nobody runs: refused within a few seconds with one line, nothing left behind.
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="no Dask scheduler answered") as e:
+        optimise(spec, tmp_path / "o", scheduler="tcp://127.0.0.1:9", progress=False)
+    assert time.perf_counter() - t0 < 20 and "\n" not in str(e.value)
+    assert not (tmp_path / "o").exists()
+    # A refused second start leaves the finished sweep as it was: no INCOMPLETE marker on it.
+    optimise(spec, tmp_path / "done", progress=False, pictures=False)
+    with pytest.raises(SweepStateError, match="already holds a sweep"):
+        optimise(spec, tmp_path / "done", progress=False, pictures=False)
+    assert not (tmp_path / "done" / "INCOMPLETE").exists()
+
+
+@pytest.mark.slow
+def test_two_runs_into_one_folder_the_second_is_refused(tmp_path):
+    """Two 'design optimise' into the same --out at once used to both 'succeed' and mix their
+    evaluations.csv; now the second is refused while the first runs, and the first's files are
+    its own."""
+    spec = tiny_spec(300)       # ~10 s: the second starts well before the first is done
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text(dump_spec(spec))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "wvr", "design", "optimise", "--sweep", str(sweep_file), "--out", str(out)]
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while time.time() < deadline and not (out / "evaluations.csv").exists():
+        time.sleep(0.05)
+    second = subprocess.run(cmd, capture_output=True, text=True)
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    assert second.returncode == 2 and "another run is writing" in second.stderr, second.stderr
+    assert second.stderr.count("\n") == 1 and "Traceback" not in second.stderr
+    rows = read_rows(out / "evaluations.csv")
+    assert len(rows) == 300 and len({r["eval_id"] for r in rows}) == 300
+    assert not (out / "INCOMPLETE").exists()

@@ -149,3 +149,26 @@ def test_best_solution_is_nearest_current():
 def test_bad_target_is_refused_clearly():
     with pytest.raises(ValueError, match="zero or non-finite length"):
         gaze_at_direction(reference_head(), [0, 0, 0])
+
+
+def test_a_far_point_out_of_range_is_refused_by_its_joint_not_as_too_close():
+    """1e9 m along the elevation axis is a gimbal lock for Newton; the reason is the pan range."""
+    h = reference_head()
+    for p, sign in (((0.0, 1e9, 0.0), 1), ((0.0, -1e9, 0.0), -1), ((0.0, 10.0, 0.0), 1), ((0.0, -10.0, 0.0), -1)):
+        r = gaze_at_point(h, np.array(p))
+        assert not r.reachable and r.blocking_joint == "pan", r.reason
+        need = float(r.reason.split("would need ")[1].split(" deg")[0])
+        assert "too close" not in r.reason and 85 < sign * need < 95, r.reason
+    # What 'wvr sim run --target 1e9,0,0' asked of the head: the point in the mount frame, the
+    # mount's up and the joints at the time (it was refused as "too close to the head").
+    r = gaze_at_point(h, np.array([0.0449236841, 1e9, -1.42063961]), np.array([0.0, 0.0, 1.0]),
+                      q_current=np.array([-0.7769195, 0.16879482, -0.16369169]))
+    assert not r.reachable and "too close" not in r.reason and r.blocking_joint in ("elevation", "pan"), r.reason
+    # Far and reachable along any direction: the same answer as the direction itself.
+    for d in ([1.0, 0.0, 0.0], [1.0, 0.8, 0.3], [0.6, -0.5, -0.4]):
+        d = np.array(d) / np.linalg.norm(d)
+        rp, rd = gaze_at_point(h, 1e9 * d), gaze_at_direction(h, d)
+        assert rp.reachable and rd.reachable
+        np.testing.assert_allclose(rp.q, rd.q, atol=1e-6)
+    # Near the head it is still "too close".
+    assert "too close" in gaze_at_point(h, np.array([0.0, 0.02, 0.0])).reason

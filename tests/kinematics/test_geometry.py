@@ -81,3 +81,27 @@ def test_not_toml_and_missing_file(tmp_path):
         load_head(p)
     with pytest.raises(HeadFileError, match="no such file"):
         load_head(tmp_path / "nope.toml")
+
+
+def test_messages_stay_short_and_name_the_real_problem(tmp_path):
+    d = reference_head().to_dict()
+    d["joints"]["pan"]["origin_m"] = [0.0] * 10_000_000        # a huge array typed by mistake
+    path = tmp_path / "huge.toml"
+    path.write_text(tomli_w.dumps(d))
+    with pytest.raises(HeadFileError) as e:
+        load_head(path)
+    msg = str(e.value)
+    assert len(msg) < 300 and "joints.pan.origin_m" in msg and "10000000" in msg
+    d = reference_head().to_dict()
+    d["parts"][0]["mass_kg"] = math.inf
+    with pytest.raises(HeadFileError) as e:
+        HeadGeometry.from_dict(d)
+    assert "not a finite number" in str(e.value) and "negative" not in str(e.value)
+    d["parts"][0]["mass_kg"] = -0.1
+    with pytest.raises(HeadFileError, match="is negative"):
+        HeadGeometry.from_dict(d)
+    d = reference_head().to_dict()
+    d["servos"] = {"HS-40": {"travel_deg": [1, 2], "max_speed_rad_s": 8.0, "stall_torque_nm": 0.04,
+                             "mass_kg": 0.0045, "size_m": [0.02, 0.0086, 0.018]}}
+    with pytest.raises(HeadFileError, match="servos.HS-40: every value must be a number"):
+        HeadGeometry.from_dict(d)

@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from placement.body import SEGMENT_INDEX, SEGMENTS, Body, BodyError, Motion, Pose, make_body
-from placement.io import (
-    load_body, load_bvh, read_bvh, save_body_obj, save_body_ply, save_joints_json,
-)
+from placement.bvh import read_bvh
+from placement.io import load_body, save_body_obj, save_body_ply, save_joints_json
+from placement.retarget import load_bvh
 
 H = 1.75
 
@@ -37,6 +37,14 @@ def _assert_same_body(a: Body, b: Body):
     np.testing.assert_allclose(a.joints, b.joints, atol=1e-9, rtol=0)
     pose = Pose(np.random.default_rng(0).normal(scale=0.4, size=(len(SEGMENTS), 3)), np.array([0.1, -0.2, 0.05]))
     np.testing.assert_allclose(a.posed_vertices(pose), b.posed_vertices(pose), atol=1e-9, rtol=0)
+
+
+def _canonical(faces):
+    """Each triangle rotated to start at its smallest index: equal rows are the same triangle with
+    the same winding (trimesh splits a quad (a b c d) as (a b c)(c d a), a fan as (a b c)(a c d))."""
+    f = np.asarray(faces)
+    k = np.argmin(f, axis=1)
+    return np.stack([f[np.arange(len(f)), (k + i) % 3] for i in range(3)], axis=1)
 
 
 def _one_line_error(excinfo, *words):
@@ -82,6 +90,40 @@ def test_ply_errors(tmp_path, body):
     _one_line_error(e, "truncated", "'face'")
 
 
+def test_ply_polygons_and_binary_limits(tmp_path, body):
+    """ASCII PLY polygons are fan-triangulated keeping their labels; a binary PLY whose faces
+    have different corner counts (trimesh cannot read those) is refused saying what to do."""
+    mesh, joints = _write_body(tmp_path, body, "ply")
+    header, rest = mesh.read_text().split("end_header\n")
+    lines = rest.splitlines()
+    V = len(body.vertices)
+    rows = lines[V:]
+    # Merge the first two faces of each segment into one polygon where they share an edge (a, c).
+    out, i, quads = [], 0, 0
+    F, S = body.faces.tolist(), body.face_segment.tolist()
+    while i < len(F):
+        a, b, c = F[i]
+        if i + 1 < len(F) and S[i + 1] == S[i] and F[i + 1][0] == a and F[i + 1][1] == c:
+            out.append(f"4 {a} {b} {c} {F[i + 1][2]} {S[i]}")
+            i, quads = i + 2, quads + 1
+        else:
+            out.append(rows[i])
+            i += 1
+    assert quads > 100
+    header = header.replace(f"element face {len(F)}", f"element face {len(out)}")
+    mesh.write_text(header + "end_header\n" + "\n".join(lines[:V] + out) + "\n")
+    _assert_same_body(load_body(mesh, joints), body)        # fan (a b c)(a c d): the original faces
+    import struct
+    bad = tmp_path / "mixed.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty double x\nproperty double y\n"
+                    b"property double z\nelement face 2\nproperty list uchar int vertex_indices\nproperty uchar segment\n"
+                    b"end_header\n" + np.zeros((4, 3)).tobytes() + struct.pack("<B4iB", 4, 0, 1, 2, 3, 0)
+                    + struct.pack("<B3iB", 3, 0, 1, 2, 1))
+    with pytest.raises(BodyError) as e:
+        load_body(bad, joints)
+    _one_line_error(e, "corner counts", "triangulate on export")
+
+
 def test_obj_polygons_corner_forms_objects_and_shared_vertices(tmp_path, body):
     """Quads, v/vt/vn forms, negative indices and `o` groups; a vertex shared by two segments is duplicated."""
     F, S = body.faces.tolist(), body.face_segment.tolist()
@@ -109,7 +151,7 @@ def test_obj_polygons_corner_forms_objects_and_shared_vertices(tmp_path, body):
     save_joints_json(body, joints)
     loaded = load_body(mesh, joints)
     assert quads > 100
-    np.testing.assert_array_equal(loaded.faces[:-1], body.faces)
+    np.testing.assert_array_equal(_canonical(loaded.faces[:-1]), _canonical(body.faces))
     assert len(loaded.vertices) == V + 3 and loaded.face_segment[-1] == SEGMENT_INDEX["chest"]
     np.testing.assert_array_equal(loaded.vertices[loaded.faces[-1]], body.vertices[abd])
     # Each vertex belongs to exactly one segment: every corner carries its face's label.
@@ -424,7 +466,7 @@ def test_bvh_missing_driver(tmp_path, body):
     path = _write_bvh(tmp_path / "nofoot.bvh", body, [_standing()] * 2, rename={"LeftFoot": "LeftPaw"})
     with pytest.raises(BodyError) as e:
         load_bvh(path, body)
-    _one_line_error(e, "['foot_l']", "allow_missing=True")
+    _one_line_error(e, "['foot_l']", "allow_missing=True", "--allow-missing-joints")
     m = load_bvh(path, body, allow_missing=True)
     assert "LeftPaw" in m.unmapped
     np.testing.assert_allclose(m.rotvec[:, SEGMENT_INDEX["foot_l"]], 0.0, atol=1e-12)
@@ -451,3 +493,77 @@ def test_bvh_bad_files_name_the_line(tmp_path, body):
             f"line {k + 1}", "'Wrotation'")
     refused("\n".join(lines[:k - 4]) + "\n", "no MOTION")
     refused("\n".join(lines[:k - 4] + ["MOTION", "Frames: 1", "Frame Time: 0.1", "0"]), "ends", "HIERARCHY")
+
+
+# ----------------------------------------------------------------------------------------------
+# An imported walk in the placement study: its own travel is not camera motion.
+# ----------------------------------------------------------------------------------------------
+
+_TO_FILE = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])   # C^T: our axes -> the file's (Y up, facing +Z)
+# Our segment -> the CMU-style joint carrying its local rotation (the joints between carry none).
+_CARRIER = {"pelvis": "Hips", "abdomen": "LowerBack", "chest": "Spine1", "head": "Head",
+            "thigh_l": "LeftUpLeg", "shank_l": "LeftLeg", "foot_l": "LeftFoot",
+            "thigh_r": "RightUpLeg", "shank_r": "RightLeg", "foot_r": "RightFoot"}
+
+
+def _walk_frames(body, t, travel_m, unit=0.01):
+    """BVH frames of the procedural walk's gait along a given travel (distance along -Y, metres,
+    per frame): the gait's phase advances with the distance, its amplitude with the speed."""
+    from placement.motions import walk
+
+    speed = np.gradient(travel_m, t)
+    steady = walk(body, seconds=10.0, rate_hz=1 / (t[1] - t[0]))
+    # The gait at the phase reached by walking this far at 1.3 m/s.
+    k = np.clip(np.round(travel_m / 1.3 * 30).astype(int), 0, len(steady) - 1)
+    amp = np.clip(speed / 1.3, 0.0, 1.0)
+    frames = []
+    for i in range(len(t)):
+        fr = _standing()
+        for seg, joint in _CARRIER.items():
+            rv = amp[i] * steady.rotvec[k[i], SEGMENT_INDEX[seg]]
+            R = _TO_FILE @ Rotation.from_rotvec(rv).as_matrix() @ _TO_FILE.T
+            z, y, x = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
+            fr[joint] = {**fr.get(joint, {}), "Zrotation": z, "Yrotation": y, "Xrotation": x}
+        root = steady.root_m[k[i]] * [amp[i], 0.0, amp[i]] + [0.0, -travel_m[i], 0.0]   # sway, bounce, travel
+        p = _TO_FILE @ root / unit
+        fr["Hips"].update({"Xposition": p[0], "Yposition": p[1], "Zposition": p[2]})
+        frames.append(fr)
+    return frames
+
+
+def _zone_motion_mm(body, motion):
+    from placement.scores import ScoreSettings, ScoreTable, motion_scores
+    from placement.zones import zone_masks
+
+    c, n = body.face_frames()
+    table = ScoreTable(np.arange(body.face_count), np.array([SEGMENTS[i] for i in body.face_segment]), c, n, {},
+                       ScoreSettings(), (), ())
+    mm = motion_scores(body, [motion])["motion_mm"]
+    return {z: float(mm[m].mean()) for z, m in zone_masks(body, table).items()}
+
+
+def test_an_imported_walk_that_starts_and_stops_has_its_travel_removed(tmp_path, body):
+    """A captured walk starts from standing, speeds up, walks and stops: a straight-line fit of its
+    path leaves the travel in as ~hundreds of mm for every zone. With the progression removed the
+    figures are those of the same gait walked steadily, and the head moves most, as in the paper."""
+    from placement.motions import walk
+
+    dt = 1 / 30
+    t = np.arange(0.0, 4.5, dt)
+    # Speed: 0 for 0.5 s, up to 1.3 m/s by 1.5 s (smooth), steady, down to 0 by 4.2 s.
+    up = np.clip((t - 0.5) / 1.0, 0, 1)
+    down = np.clip((4.2 - t) / 1.0, 0, 1)
+    speed = 1.3 * np.minimum(up * up * (3 - 2 * up), down * down * (3 - 2 * down))
+    travel = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+    m = load_bvh(_write_bvh(tmp_path / "walk.bvh", body, _walk_frames(body, t, travel)), body)
+    np.testing.assert_allclose(-m.root_m[:, 1], travel, atol=0.03)           # the travel came through
+    imported = _zone_motion_mm(body, m)
+    steady_bvh = load_bvh(_write_bvh(tmp_path / "steady.bvh", body, _walk_frames(body, t, 1.3 * t)), body)
+    steady = _zone_motion_mm(body, steady_bvh)
+    procedural = _zone_motion_mm(body, walk(body))
+    for z in ("head", "shoulder", "chest"):
+        # The steady imported walk is the procedural one (an independent check of the retargeting) ...
+        assert abs(steady[z] - procedural[z]) < 0.15 * procedural[z], (z, steady, procedural)
+        # ... and the start-stop walk is on its scale, not hundreds of mm of travel.
+        assert imported[z] < 1.5 * steady[z] + 10, (z, imported, steady)
+    assert max(imported, key=imported.get) == "head", imported

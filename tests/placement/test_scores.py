@@ -8,7 +8,7 @@ import trimesh
 
 from placement.body import SEGMENT_INDEX, SEGMENTS, BodyError, Motion, Pose, make_body
 from placement.motions import default_motions, default_poses
-from placement.rays import Occluder
+from kinematics.rays import RayCaster
 from placement.scores import fov_fraction, handling_space, motion_scores
 
 BODY = make_body()
@@ -51,7 +51,7 @@ def test_point_above_a_sphere_sees_the_analytic_fraction():
     R, d = 0.3, 0.05
     sphere = trimesh.creation.icosphere(subdivisions=6, radius=R)
     cam = np.array([[0.0, 0.0, R + d]])
-    got = fov_fraction(Occluder(sphere.vertices, sphere.faces), cam, rays=8192)[0]
+    got = fov_fraction(RayCaster(sphere.vertices, sphere.faces), cam, rays=8192)[0]
     t = math.asin(R / (R + d))
     expected = 1 - (1 - math.cos(t)) / 2
     assert got == pytest.approx(expected, abs=2e-3)
@@ -60,11 +60,11 @@ def test_point_above_a_sphere_sees_the_analytic_fraction():
 def test_point_above_an_infinite_plane_sees_half_and_alone_sees_all():
     L = 1e4
     plane = trimesh.Trimesh([[-L, -L, 0], [L, -L, 0], [L, L, 0], [-L, L, 0]], [[0, 1, 2], [0, 2, 3]])
-    occ = Occluder(plane.vertices, plane.faces)
+    occ = RayCaster(plane.vertices, plane.faces)
     assert fov_fraction(occ, np.array([[0.0, 0.0, 0.02]]), rays=2048)[0] == pytest.approx(0.5, abs=1e-12)
     assert fov_fraction(occ, np.array([[5 * L, 5 * L, 1.0]]), rays=2048)[0] > 0.49
     tiny = trimesh.creation.box((1e-3, 1e-3, 1e-3))
-    assert fov_fraction(Occluder(tiny.vertices + 100.0, tiny.faces), np.zeros((1, 3)), 2048)[0] == 1.0
+    assert fov_fraction(RayCaster(tiny.vertices + 100.0, tiny.faces), np.zeros((1, 3)), 2048)[0] == 1.0
 
 
 def test_occluder_agrees_with_trimesh():
@@ -72,7 +72,7 @@ def test_occluder_agrees_with_trimesh():
     rng = np.random.default_rng(0)
     o = rng.uniform([-0.5, -0.5, 0], [0.5, 0.5, 1.8], (20000, 3))
     d = rng.normal(size=(20000, 3)); d /= np.linalg.norm(d, axis=1)[:, None]
-    ours = Occluder(body_mesh.vertices, body_mesh.faces).blocked(o, d)
+    ours = RayCaster(body_mesh.vertices, body_mesh.faces).blocked(o, d)
     theirs = body_mesh.ray.intersects_any(o, d)
     assert np.mean(ours == theirs) > 0.999
 

@@ -207,7 +207,7 @@ def test_track_mode_centres_an_image_point():
 
 
 def test_slaving_to_a_tracked_head_follows_the_mapped_angles_within_the_limits():
-    from runtime.vision2d.headtrack import head_to_joint_targets
+    from runtime.gaze.slaving import head_to_joint_targets
 
     q0 = np.zeros(3)
     limit = math.radians(30)

@@ -14,9 +14,11 @@ import pytest
 from kinematics import reference_head
 from kinematics.camera import CameraIntrinsics, project
 from runtime.vision2d.headscene import HeadScene, render_head_sequence
-from runtime.vision2d.headtrack import (HeadTracker, HeadTrackerConfig, head_pose, head_to_joint_targets,
-                                        intersect_rays, polyhedral_head, rotation_error_rad,
-                                        rotation_from_ypr, ypr_from_rotation)
+from kinematics.rays import RayCaster
+from kinematics.transforms import rotation_angle as rotation_error_rad
+from runtime.gaze.slaving import head_to_joint_targets
+from runtime.vision2d.headmodel import head_pose, polyhedral_head, rotation_from_ypr, ypr_from_rotation
+from runtime.vision2d.headtrack import HeadTracker, HeadTrackerConfig
 
 #: Small frames for speed: default_camera() halved (320x240, f = 257.35 px), head 0.6 m away.
 CAM = CameraIntrinsics(width=320, height=240, fx=257.35, fy=257.35, cx=159.5, cy=119.5)
@@ -53,6 +55,10 @@ def test_ypr_convention_and_round_trip():
     assert np.allclose(ypr_from_rotation(rotation_from_ypr(ypr)), ypr, atol=1e-9)
 
 
+def intersect_rays(vertices, faces, origins, directions):
+    return RayCaster(vertices, faces).first_hit(origins, directions)
+
+
 def test_intersect_rays_against_the_ellipsoid():
     # Rays from outside toward the centre of a fine polyhedral ellipsoid land within its facet
     # error of the analytic ellipsoid, on the near side.
@@ -87,8 +93,8 @@ def test_renderer_pose_is_self_consistent(scene, ypr_deg):
     assert (drawn & projected).sum() / (drawn | projected).sum() > 0.9
     # Landmarks projected with the pose land on their features: eyes dark (iris), mouth red.
     R, t = T[:3, :3], T[:3, 3]
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(float)
-    skin = np.median(gray[drawn])
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(float)
+    skin = np.median(grey[drawn])
     for name in ("left_eye", "right_eye", "mouth"):
         X = scene.head.landmarks[name]
         n_cam = R @ X / np.linalg.norm(X)
@@ -99,7 +105,7 @@ def test_renderer_pose_is_self_consistent(scene, ypr_deg):
         if name == "mouth":
             assert np.max(patch[:, 0] - patch[:, 1]) > 60, (name, patch)
         else:
-            assert gray[v - 1: v + 2, u - 1: u + 2].min() < skin - 60, (name, skin)
+            assert grey[v - 1: v + 2, u - 1: u + 2].min() < skin - 60, (name, skin)
     # The left eye (head +y) is on the image's right when the head faces the camera.
     if ypr_deg == (0, 0, 0):
         uv = project(CAM, np.stack([R @ scene.head.landmarks[k] + t for k in ("left_eye", "right_eye")]))

@@ -383,18 +383,66 @@ def test_bad_optional_file_named(tmp_path):
 
 # -- the writer ------------------------------------------------------------------------------------
 
-def test_writer_leaves_a_valid_prefix_while_open(tmp_path):
-    # Without closing (as if the recorder were killed), what is on disk already opens.
+def test_writer_marks_the_recording_incomplete_until_closed(tmp_path):
+    # While the writer is open (as if the recorder were still running, or killed), readers refuse
+    # the folder; what is on disk is a valid prefix for those who ask for it; closing completes it.
     w = SequenceWriter(tmp_path, CAM)
     w.add_frame(0.0, grey_image(0))
     w.add_frame(0.1, grey_image(1))
     w.add_imu(0.0, [0, 0, 0], [0, 0, 9.81])
-    seq = open_sequence(tmp_path)
+    with pytest.raises(SequenceError, match="still being written"):
+        open_sequence(tmp_path)
+    seq = open_sequence(tmp_path, allow_incomplete=True)
     assert len(seq) == 2 and len(seq.imu) == 1
     assert all(f.ok for f in seq.frames())
     w.close()
+    assert len(open_sequence(tmp_path)) == 2 and not (tmp_path / "INCOMPLETE").exists()
     with pytest.raises(SequenceError, match="closed"):
         w.add_frame(0.2, grey_image(2))
+
+
+def test_a_killed_recording_is_refused(tmp_path):
+    """A recorder killed mid-run leaves a shorter sequence that must not pass for a whole one."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import os, numpy as np
+        from kinematics.camera import CameraIntrinsics
+        from runtime.sequence import SequenceWriter
+        cam = CameraIntrinsics(width={CAM.width}, height={CAM.height}, fx={CAM.fx}, fy={CAM.fy}, cx={CAM.cx}, cy={CAM.cy})
+        w = SequenceWriter({str(tmp_path / "seq")!r}, cam)
+        for i in range(3):
+            w.add_frame(0.1 * i, np.full(({CAM.height}, {CAM.width}), 10 * i, np.uint8))
+        os.kill(os.getpid(), 9)
+    """)
+    subprocess.run([sys.executable, "-c", code], check=False)
+    with pytest.raises(SequenceError, match="stopped before the end") as e:
+        open_sequence(tmp_path / "seq")
+    assert "delete" in str(e.value) and "INCOMPLETE" in str(e.value)
+    assert len(open_sequence(tmp_path / "seq", allow_incomplete=True)) == 3
+    # A failure inside the writer's block leaves the marker too.
+    with pytest.raises(RuntimeError):
+        with SequenceWriter(tmp_path / "b", CAM) as w:
+            w.add_frame(0.0, grey_image(0))
+            raise RuntimeError("the scene broke")
+    with pytest.raises(SequenceError, match="stopped before the end"):
+        open_sequence(tmp_path / "b")
+
+
+def test_overwrite_removes_every_optional_file_of_the_old_recording(tmp_path):
+    with SequenceWriter(tmp_path / "a", CAM, target=make_target()) as w:
+        w.add_frame(1.0, grey_image(0))
+        w.add_depth(1.0, np.full((CAM.height, CAM.width), 1.5))
+        w.add_groundtruth(1.0, np.eye(4))
+        w.add_imu(1.0, [0, 0, 0], [0, 0, 9.81])
+        w.add_joints(1.0, [0, 0, 0])
+    with SequenceWriter(tmp_path / "a", CAM, overwrite=True) as w:
+        w.add_frame(5.0, grey_image(0))
+    seq = open_sequence(tmp_path / "a")
+    assert len(seq) == 1 and seq.depth_paths is None
+    assert seq.target is None and seq.groundtruth is None and seq.imu is None and seq.joints is None
 
 
 def test_writer_refuses_bad_input(tmp_path):
@@ -410,8 +458,9 @@ def test_writer_refuses_bad_input(tmp_path):
             w.add_frame(2.0, np.zeros((CAM.height, CAM.width)))
         with pytest.raises(SequenceError, match="rigid"):
             w.add_groundtruth(0.0, 2.0 * np.eye(4))
-    with pytest.raises(SequenceError, match="already exists"):
+    with pytest.raises(SequenceError, match="already exists") as e:
         SequenceWriter(tmp_path / "a", CAM)
+    assert "overwrite" not in str(e.value) and "new folder" in str(e.value)  # no API argument in the hint
     with SequenceWriter(tmp_path / "a", CAM, overwrite=True) as w:
         w.add_frame(5.0, grey_image(0))
     assert len(open_sequence(tmp_path / "a")) == 1

@@ -308,7 +308,7 @@ def test_runner_writes_files_that_parse(tmp_path, method):
     _write_sequence(tmp_path / "seq", frames, bad=(4,))
     out = tmp_path / "out"
     totals = track_sequence(tmp_path / "seq", out, init=init, method=method, progress=False)
-    assert totals["frames"] == 10 and totals["skipped"] == 1
+    assert totals.frames == 10 and totals.skipped == 1
     rows = list(csv.DictReader(open(out / "polygons.csv")))
     assert len(rows) == 10
     assert list(rows[0]) == ["t", "x0", "y0", "x1", "y1", "x2", "y2", "x3", "y3", "lost", "residual"]
@@ -367,3 +367,21 @@ def test_planar_tracker_on_the_twin_card_a_quarter_occluded(tmp_path):
     occluded = t >= 1.5                       # the occluder is fully over the card from 1.5 s
     assert np.sqrt(np.mean(np.square(err)[occluded])) < 2.0
     assert np.sqrt(np.mean(np.square(err)[~occluded])) < 1.0
+
+
+def test_every_tracker_meets_the_protocol_and_is_built_by_name():
+    from runtime.vision2d.track import METHODS, TRACKERS, make_tracker
+    from runtime.vision2d.tracker import Tracker
+
+    assert set(METHODS) == set(TRACKERS) == {"hyperplane", "meanshift"}
+    frames, _, _, window = blob_sequence(n=3, seed=2)
+    for method in METHODS:
+        t = make_tracker(method, frames[0], window)
+        assert isinstance(t, Tracker) and isinstance(t, TRACKERS[method][0])
+        r0 = t.start_result()
+        assert not r0.lost and r0.polygon.shape == (4, 2)
+        # The start result is the start window: its corners span it.
+        np.testing.assert_allclose(r0.polygon.min(axis=0), window[:2], atol=1.5)
+        np.testing.assert_allclose(r0.polygon.max(axis=0), np.add(window[:2], window[2:]), atol=1.5)
+        r1 = t.track(frames[1])        # a deforming blob: the planar tracker may lose it, saying so
+        assert r1.polygon.shape == (4, 2) and (r1.lost == (r1.reason is not None))

@@ -11,6 +11,7 @@ from kinematics.camera import CameraIntrinsics, default_camera
 from runtime.sequence import open_sequence
 from runtime.twin.mount import default_shoulder_mount
 from runtime.twin.recorder import record, target_in_first_frame
+from runtime.twin.scenarios import SCENARIOS
 from runtime.twin.twin import Twin
 from wvr.cli import make_twin, wearer_for
 
@@ -23,19 +24,54 @@ def twin():
 
 
 def refine(image, uv):
-    g = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    pts = uv.astype(np.float32).reshape(-1, 1, 2).copy()
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-    return cv2.cornerSubPix(g, pts, (5, 5), (-1, -1), crit).reshape(-1, 2)
+    """The dark quadrilateral's corners measured in the image near ``uv`` (4, 2): each edge
+    located where the intensity across it crosses half-way from dark to light (the renderer's
+    anti-aliasing makes that the edge's true position), a line fitted to each edge, adjacent
+    lines intersected. Unlike corner detectors it has no bias at acute corners."""
+    from scipy.ndimage import map_coordinates
+
+    g = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float64)
+    lines = []
+    for i in range(4):
+        a, b = uv[i], uv[(i + 1) % 4]
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([-d[1], d[0]])
+        pts = []
+        for s in np.linspace(0.2, 0.8, 25):
+            p = a + s * (b - a)
+            r = np.linspace(-4, 4, 81)
+            xy = p[None] + r[:, None] * n[None]
+            prof = map_coordinates(g, [xy[:, 1], xy[:, 0]], order=1)
+            lo, hi = np.percentile(prof, 5), np.percentile(prof, 95)
+            if hi - lo < 40:
+                continue
+            above = (prof - 0.5 * (lo + hi)) > 0
+            k = np.flatnonzero(above[1:] != above[:-1])
+            if len(k) != 1:
+                continue
+            k = k[0]
+            f = (0.5 * (lo + hi) - prof[k]) / (prof[k + 1] - prof[k])
+            pts.append(p + (r[k] + f * (r[k + 1] - r[k])) * n)
+        pts = np.array(pts)
+        c = pts.mean(axis=0)
+        direction = np.linalg.svd(pts - c)[2][0]
+        lines.append((c, direction))
+    out = []
+    for i in range(4):
+        (c0, d0), (c1, d1) = lines[i - 1], lines[i]
+        t = np.linalg.solve(np.column_stack([d0, -d1]), c1 - c0)
+        out.append(c0 + t[0] * d0)
+    return np.array(out)
 
 
-@pytest.mark.parametrize("scenario", ["workbench-static", "walk", "sit-down"])
+@pytest.mark.parametrize("scenario", sorted(SCENARIOS))
 def test_target_corners_in_the_first_image_match_target_toml(twin, scenario):
+    """Every scenario starts with its target in view, where the camera model projects it."""
     obs = twin.reset(scenario, seed=1, seconds=0.5)
     target = target_in_first_frame(twin)
     assert np.all((target.uv > 20) & (target.uv < [620, 460])), "the target must be in view at start"
     err = np.linalg.norm(refine(obs.image, target.uv) - target.uv, axis=1)
-    assert err.max() < 0.5, err
+    assert err.max() < 0.35, err
 
 
 def test_ground_truth_is_body_pose_times_mount_times_head_fk(twin):
@@ -66,16 +102,20 @@ def test_commands_beyond_range_or_speed_are_clamped(twin):
 
 
 def test_imu_reads_gravity_at_rest(twin):
+    """With the head held and the wearer only swaying, the accelerometer reads gravity (up,
+    9.81 m/s^2) and the gyro nearly nothing, once the run's drawn IMU errors are taken out."""
     obs = twin.reset("workbench-static", seed=0, seconds=1.5)
     rows = []
     for _ in range(40):
         obs = twin.step(twin.filter.q)             # the head holds still; the wearer only sways
         rows.append(obs.imu)
     imu = np.vstack(rows)[20:]
+    e = twin.imu_errors
+    f = np.linalg.solve(e.M_accel, imu[:, 4:7].mean(axis=0) - e.accel_bias0)
+    w = np.linalg.solve(e.M_gyro, imu[:, 1:4].mean(axis=0) - e.gyro_bias0)
     R = twin.ground_truth.T_world_cam[:3, :3]
-    a_world = R @ imu[:, 4:7].mean(axis=0)
-    np.testing.assert_allclose(a_world, [0, 0, 9.81], atol=0.05)   # up, 9.81 m/s^2
-    assert np.linalg.norm(imu[:, 1:4].mean(axis=0)) < 0.02         # barely turning
+    np.testing.assert_allclose(R @ f, [0, 0, 9.81], atol=0.05)   # up, 9.81 m/s^2
+    assert np.linalg.norm(w) < 0.02                               # barely turning
 
 
 def test_same_scenario_and_seed_give_the_same_files(tmp_path):
@@ -105,7 +145,7 @@ def test_wide_angle_camera_renders_through_its_lens_model():
         target = target_in_first_frame(t)
         assert obs.image.shape == (240, 320, 3)
         err = np.linalg.norm(refine(obs.image, target.uv) - target.uv, axis=1)
-        assert err.max() < 0.5, err
+        assert err.max() < 0.35, err
     finally:
         t.close()
 

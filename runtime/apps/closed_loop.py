@@ -1,0 +1,422 @@
+"""The closed loop on any :class:`runtime.robot.Robot`: SLAM, the gaze controller and the 2D
+trackers driving the head from the robot's observations alone (``wvr sim run`` on the twin,
+``wvr run`` on the hardware rig).
+
+Three parts, kept apart:
+
+* **step** (:class:`ClosedLoop`): one observation in, one :class:`JointCommand` and one
+  :class:`LoopRow` out. It sees what a real wearable gives: the image (through SLAM or a 2D
+  tracker), the IMU samples and the joint angles; and, as inputs, the task and the start-up
+  target (points of known position and where a person clicked them in the first image).
+* **log** (:class:`LoopRow`, named columns; joints.csv and the trajectory files).
+* **evaluate** (``runtime.apps.evaluate``): only where the robot offers truth
+  (:class:`runtime.robot.TruthSource`), outside the control path.
+
+Tasks
+-----
+``fixate``   hold the optic axis on the first target for the whole run.
+``saccade``  saccade through the targets in turn, ``dwell_s`` on each (cycling), fixating in between.
+``stabilise`` Path A: hold the camera's starting attitude from the IMU alone (no vision).
+``body``     Path B: hold the starting gaze direction relative to the wearer's body.
+``track``    keep a 2D tracker's target centred (by default the start-up target's clicked
+             rectangle, grown to take in its surround), the tracker seeing only the images.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from kinematics import JOINT_NAMES
+from kinematics.tomlfile import read_toml
+
+from ..gaze import ControllerSettings, GazeController, GazeRefused
+from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
+from ..sequence import Target, write_trajectory
+from ..slam.system import MonoSLAM
+from ..vision2d.track import METHODS as TRACK_METHODS
+from ..vision2d.track import make_tracker
+
+#: What the closed loop's controller may be asked to do.
+TASKS = ("fixate", "saccade", "stabilise", "body", "track")
+
+#: The default tracked region: the start-up target's clicked rectangle grown about its centre,
+#: so that it takes in the card's edge and the bench's texture around it (the same plane): a
+#: plain black rectangle alone gives a planar tracker little to lock on to.
+TRACK_REGION_SCALE = 1.8
+
+
+@dataclass(frozen=True)
+class Task:
+    """kind : one of :data:`TASKS`. targets : (n, 3) world points, m (fixate, saccade).
+    dwell_s : time on each saccade target before the next. region : track: (x, y, w, h) pixels
+    in the first frame (default: the start target's rectangle). method : track: the 2D tracker."""
+
+    kind: str
+    targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    dwell_s: float = 2.0
+    region: tuple | None = None
+    method: str = "hyperplane"
+
+    def __post_init__(self):
+        if self.kind not in TASKS:
+            raise ValueError(f"task {self.kind!r} unknown; choose one of {', '.join(TASKS)}")
+        t = np.asarray(self.targets, float).reshape(-1, 3)
+        if not np.isfinite(t).all():
+            raise ValueError("task targets must be finite world points (x, y, z) m")
+        if self.kind in ("fixate", "saccade") and len(t) == 0:
+            raise ValueError(f"task {self.kind} needs a target: give --target X,Y,Z or --targets FILE")
+        if self.kind == "saccade" and len(t) < 2:
+            raise ValueError("task saccade needs at least two targets (--targets FILE)")
+        if self.method not in TRACK_METHODS:
+            raise ValueError(f"track method {self.method!r}: use one of {', '.join(TRACK_METHODS)}")
+        if not self.dwell_s > 0:
+            raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
+        object.__setattr__(self, "targets", t)
+
+    @property
+    def uses_slam(self) -> bool:
+        return self.kind in ("fixate", "saccade")
+
+
+def load_targets(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """A targets file: TOML with ``targets = [[x, y, z], ...]`` (world, m) and optional ``dwell_s``."""
+    d = read_toml(path, ValueError, "a targets TOML file (targets = [[x, y, z], ...])")
+    if "targets" not in d:
+        raise ValueError(f"{path}: no 'targets' list; write targets = [[x, y, z], ...] in metres, world frame")
+    t = np.asarray(d["targets"], float)
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise ValueError(f"{path}: 'targets' must be a list of [x, y, z] triples, got shape {t.shape}")
+    return t, d.get("dwell_s")
+
+
+def default_region(target: Target) -> np.ndarray:
+    """(4, 2) the default tracked region in the first image: the target's clicked corners grown
+    by :data:`TRACK_REGION_SCALE` about their centre."""
+    uv = np.asarray(target.uv, float)[:4]
+    c = uv.mean(axis=0)
+    return c + TRACK_REGION_SCALE * (uv - c)
+
+
+def region_polygon(region) -> np.ndarray:
+    """(4, 2) corners of a region given as (x, y, w, h) or as 4 corners."""
+    r = np.asarray(region, float)
+    if r.shape == (4, 2):
+        return r
+    x, y, w, h = r.reshape(4)
+    return np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]])
+
+
+#: The start-up target: known points with their pixels in the first image, or a callable that
+#: is shown the first observation and returns them.
+StartTarget = Target | Callable[[Observation], Target]
+
+
+# ---------------------------------------------------------------------------------------------
+# log
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LoopRow:
+    """One control period, as logged. Angles rad, rates rad/s, target world m.
+
+    t : the observation's time. cmd_q, cmd_rate : what the controller commanded. meas_q,
+    meas_rate : the observation's joint angles (encoders, or commands where the robot has no
+    encoders: see ``q_source``) and their rate. mode : the controller's mode. target : the
+    current fixation or saccade target (NaN if none). est_error_deg : the controller's own
+    estimate of its error. T_est : (4, 4) SLAM's camera pose (NaN without SLAM). lost : SLAM
+    lost this frame. polygon : (4, 2) the 2D tracker's region (NaN without). track_lost.
+    """
+
+    t: float
+    cmd_q: np.ndarray
+    meas_q: np.ndarray
+    cmd_rate: np.ndarray
+    meas_rate: np.ndarray
+    mode: str
+    target: np.ndarray
+    est_error_deg: float
+    q_source: str = "measured"
+    T_est: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
+    lost: bool = False
+    polygon: np.ndarray = field(default_factory=lambda: np.full((4, 2), np.nan))
+    track_lost: bool = False
+
+    #: joints.csv's columns, in order.
+    CSV_HEADER = ["t", *[f"cmd_{n}" for n in JOINT_NAMES], *[f"meas_{n}" for n in JOINT_NAMES],
+                  *[f"cmd_rate_{n}" for n in JOINT_NAMES], *[f"meas_rate_{n}" for n in JOINT_NAMES], "mode",
+                  "target_x", "target_y", "target_z", "est_error_deg"]
+
+    def csv_row(self) -> list:
+        return [self.t, *self.cmd_q, *self.meas_q, *self.cmd_rate, *self.meas_rate, self.mode, *self.target,
+                self.est_error_deg]
+
+
+@dataclass
+class LoopLog:
+    """Everything the loop did, for writing and for evaluation: the rows, and the events
+    (saccade starts and landings), refusals and prompts in time order."""
+
+    rows: list[LoopRow] = field(default_factory=list)
+    events: list[dict] = field(default_factory=list)
+    refusals: list[dict] = field(default_factory=list)
+
+    def column(self, name: str) -> np.ndarray:
+        return np.array([getattr(r, name) for r in self.rows], float)
+
+    @property
+    def times(self) -> np.ndarray:
+        return self.column("t")
+
+
+# ---------------------------------------------------------------------------------------------
+# step
+# ---------------------------------------------------------------------------------------------
+
+class ClosedLoop:
+    """The control program of one task on one robot, a period at a time.
+
+    info : what the robot reports (head, camera, frame rate). task : the :class:`Task`.
+    start_target : the known points and their clicked pixels in the first image (SLAM's
+    start-up, and the default tracked region), or a callable that is shown the first
+    observation and returns them (a person clicking); required for fixate, saccade and track
+    without a region. settings : the gaze controller's.
+    """
+
+    def __init__(self, info: RobotInfo, task: Task, start_target: StartTarget | None = None,
+                 settings: ControllerSettings = ControllerSettings()):
+        if task.uses_slam and start_target is None:
+            raise ValueError(f"task {task.kind} starts SLAM from a known target: give its target.toml "
+                             f"(known points and their pixels in the first image)")
+        if task.kind == "track" and task.region is None and start_target is None:
+            raise ValueError("task track needs a region (--init X,Y,W,H) or a start target whose rectangle to track")
+        self.info = info
+        self.task = task
+        self.start_target = start_target
+        self.settings = settings
+        self.dt = 1.0 / info.frame_rate
+        self.log = LoopLog()
+        self.slam: MonoSLAM | None = None
+        self.ctl: GazeController | None = None
+        self.tracker = None
+        self.region_uv: np.ndarray | None = None
+        self._i = 0
+        self._current = 0
+        self._q_prev = None
+        self._imu_pending = []
+        self._basis_t: float | None = None
+
+    # -- start-up: the first observation
+    def start(self, obs: Observation) -> None:
+        if callable(self.start_target):
+            self.start_target = self.start_target(obs)
+        if self.task.uses_slam:
+            self.slam = MonoSLAM(self.info.camera)
+            self.slam.start(obs.image, obs.t, self.start_target)
+        self.ctl = GazeController(self.info.head, self.info.camera, obs.q, self.dt, self.settings)
+        if self.task.kind == "track":
+            self.region_uv = region_polygon(self.task.region) if self.task.region is not None \
+                else default_region(self.start_target)
+            lo, hi = self.region_uv.min(axis=0), self.region_uv.max(axis=0)
+            init = self.region_uv if self.task.method == "hyperplane" and self.task.region is None else (*lo, *(hi - lo))
+            self.tracker = make_tracker(self.task.method, obs.image, init)
+        self._q_prev = np.asarray(obs.q, float).copy()
+        self._i = 0
+        self._basis_t = obs.t
+
+    @property
+    def prompts(self):
+        return self.ctl.prompts if self.ctl is not None else []
+
+    def _set_target(self, i: int, t: float) -> None:
+        task = self.task
+        try:
+            if task.kind == "fixate":
+                self.ctl.fixate(task.targets[i])
+            elif task.kind == "saccade":
+                self.ctl.saccade(task.targets[i])
+                self.log.events.append({"t": t, "event": "saccade", "target": i})
+        except GazeRefused as e:
+            self.log.refusals.append({"t": t, "target": i, "reason": str(e)})
+
+    def step(self, obs: Observation) -> JointCommand:
+        """One period: the observation in (after the robot's step, or the first one after
+        :meth:`start`), the command for the next period out; appends a :class:`LoopRow`."""
+        if self.ctl is None:
+            raise RuntimeError("call start(first observation) first")
+        i, task, ctl, slam = self._i, self.task, self.ctl, self.slam
+        imu = obs.imu.rows()
+        if slam is not None and i > 0:
+            # SLAM folds in each fresh image with the IMU since the last one it saw.
+            self._imu_pending.append(imu)
+            if obs.fresh_image:
+                slam.process(obs.image, obs.t, imu=np.vstack(self._imu_pending))
+                self._imu_pending = []
+        lost = bool(slam is not None and slam.stats and slam.stats[-1].lost)
+        T_est = slam.T_world_cam() if slam is not None and not lost else None
+        v_est = slam.state.v.copy() if T_est is not None else None
+        if i == 1:
+            # The first IMU rows arrive with the first step, and the mount's pose is known once
+            # the controller has stepped once: the task starts then.
+            if task.kind == "stabilise":
+                ctl.attitude.update(imu)
+                imu = np.zeros((0, 7))
+                ctl.stabilise()
+            elif task.kind == "body":
+                ctl.body()
+            elif task.kind in ("fixate", "saccade"):
+                self._set_target(0, obs.t)
+        if task.kind == "saccade" and i > 1 and obs.t >= (self._current + 1) * task.dwell_s:
+            self._current += 1
+            self._set_target(self._current % len(task.targets), obs.t)
+        poly, track_lost = np.full((4, 2), np.nan), False
+        if self.tracker is not None:
+            if i == 0:
+                poly = self.region_uv.copy()
+            elif obs.fresh_image:
+                res = self.tracker.track(obs.image)
+                poly, track_lost = res.polygon, bool(res.lost)
+                if not res.lost:
+                    ctl.track(res.centre)
+                else:
+                    ctl.hold()                # a lost target is said (tracking.csv), not chased
+        # What the command rests on, for the robot's safety watchdog: the newest SLAM pose, IMU
+        # sample or tracker fix (the task's own estimate; none for Path B).
+        if task.uses_slam:
+            if T_est is not None:
+                self._basis_t = obs.t
+        elif task.kind == "stabilise":
+            if len(obs.imu):
+                self._basis_t = float(obs.imu.t[-1])
+        elif task.kind == "track":
+            if i == 0 or (obs.fresh_image and not track_lost):
+                self._basis_t = obs.t
+        else:
+            self._basis_t = None
+        cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
+        if cmd.landed:
+            self.log.events.append({"t": obs.t, "event": "landed", "target": self._current % len(task.targets)})
+        q = np.asarray(obs.q, float)
+        qd_meas = (q - self._q_prev) / self.dt if i else np.zeros(3)
+        self._q_prev = q.copy()
+        tgt = task.targets[self._current % len(task.targets)] if len(task.targets) else np.full(3, np.nan)
+        err = math.degrees(cmd.error_rad) if np.isfinite(cmd.error_rad) else float("nan")
+        self.log.rows.append(LoopRow(
+            t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,
+            target=np.asarray(tgt, float).copy(), est_error_deg=err, q_source=obs.q_source,
+            T_est=slam.T_world_cam() if slam is not None else np.full((4, 4), np.nan), lost=lost,
+            polygon=np.asarray(poly, float), track_lost=track_lost))
+        self._i += 1
+        return JointCommand(cmd.q, cmd.qd, basis_t=self._basis_t)
+
+
+# ---------------------------------------------------------------------------------------------
+# the run: step until done, log, and (with truth) evaluate
+# ---------------------------------------------------------------------------------------------
+
+def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: StartTarget | None = None,
+                    seconds: float | None = None, settings: ControllerSettings = ControllerSettings(),
+                    progress: bool = True, truth: TruthSource | None = None, label: str = "",
+                    task_info: dict | None = None, on_period: Callable[[Observation, JointCommand], None] | None = None
+                    ) -> dict:
+    """Run ``task`` on ``robot`` for ``seconds`` (None: until the robot's session ends or Ctrl-C);
+    write joints.csv, prompts.csv, task.toml, trajectory.tum (SLAM), report.md and
+    summary.json into ``out``; return the summary.
+
+    ``truth`` : where the robot offers it (the twin), the truth is logged beside each period,
+    written as groundtruth.txt and scored (fixation error, attitude held, ATE, tracking): read
+    only between periods, never by the control step. ``on_period(obs, command)`` : called
+    every period (a session recorder). ``label`` : what the report calls the robot's setting
+    (the scenario); ``task_info`` : extra keys for task.toml.
+    """
+    from .evaluate import evaluate
+    from .report import write_outputs
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    info = robot.info
+    n_frames = None if seconds is None else max(1, int(round(seconds * info.frame_rate)))
+    loop = ClosedLoop(info, task, start_target, settings)
+    truths = []
+    obs = robot.reset()
+    loop.start(obs)
+    interrupted, fault = None, None
+    bar = tqdm(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
+               disable=not progress)
+    try:
+        i = 0
+        while True:
+            if truth is not None:
+                truths.append(truth.truth())
+            cmd = loop.step(obs)
+            if on_period is not None:
+                on_period(obs, cmd)
+            bar.update(1)
+            i += 1
+            if n_frames is not None and i >= n_frames:
+                break
+            try:
+                obs = robot.step(cmd)
+            except SessionEnded as e:
+                interrupted = str(e) or "the robot's session ended"
+                break
+    except KeyboardInterrupt:
+        interrupted = "stopped by Ctrl-C"
+    except Exception as e:  # noqa: BLE001 - a device fault: write what was done, then re-raise
+        interrupted, fault = f"fault: {e}", e
+    finally:
+        bar.close()
+    log = loop.log
+    summary = {"scenario": label or info.name, "task": task.kind, "seconds": float(log.rows[-1].t - log.rows[0].t)
+               if len(log.rows) > 1 else 0.0, "frames": len(log.rows),
+               "motion_limit_deg_s": math.degrees(settings.motion_limit_rad_s), "refusals": log.refusals,
+               "events": log.events, "prompts": len(loop.prompts), "ended": interrupted or "complete"}
+    if loop.slam is not None:
+        summary["lost_frames"] = sum(1 for s in loop.slam.stats if s.lost)
+        (out / "slam_stats.json").write_text(json.dumps({"frames": [asdict(s) for s in loop.slam.stats]}, indent=0))
+    cmd_rate, meas_rate = log.column("cmd_rate"), log.column("meas_rate")
+    summary["peak_cmd_rate_deg_s"] = float(np.degrees(np.abs(cmd_rate).max()))
+    summary["peak_meas_rate_deg_s"] = float(np.degrees(np.abs(meas_rate[1:]).max())) if len(log.rows) > 1 else 0.0
+    times = log.times
+    if loop.slam is not None:
+        write_trajectory(out / "trajectory.tum", times, np.array([r.T_est for r in log.rows]),
+                         header="SLAM camera-to-world poses during the loop")
+    if truth is not None:
+        T_true = np.array([tr.T_world_cam for tr in truths])
+        write_trajectory(out / "groundtruth.txt", times, T_true, header="true camera-to-world poses (optical frame)")
+        summary.update(evaluate(log, T_true, truth.landmarks(), task, info.camera, loop.region_uv, out))
+    with open(out / "joints.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(LoopRow.CSV_HEADER)
+        w.writerows(r.csv_row() for r in log.rows)
+    with open(out / "prompts.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "kind", "turn_deg", "step_m", "text"])
+        for t, p in loop.prompts:
+            w.writerow([f"{t:.3f}", p.kind, f"{math.degrees(p.turn_rad):.1f}", f"{p.step_m:.2f}", p.text])
+    if loop.tracker is not None and truth is None:
+        from .evaluate import write_tracking
+
+        write_tracking(out, log, None)
+    (out / "task.toml").write_text(task_toml(task, task_info or {}))
+    write_outputs(out, times, summary, cmd_rate, settings)
+    if fault is not None:
+        raise fault
+    return summary
+
+
+def task_toml(task: Task, extra: dict) -> str:
+    """task.toml: the task as run (world frame, m), with ``extra`` keys (scenario, seed)."""
+    lines = ['# the closed-loop task, world frame (m)']
+    for k, v in extra.items():
+        lines.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v}")
+    lines += [f'task = "{task.kind}"', f"dwell_s = {task.dwell_s}",
+              "targets = [" + ", ".join("[" + ", ".join(f"{v:.6f}" for v in p) + "]" for p in task.targets) + "]"]
+    return "\n".join(lines) + "\n"

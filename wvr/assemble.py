@@ -1,0 +1,114 @@
+"""The composition root: builds a twin or a hardware rig from files or objects, and the inputs
+a run on them needs (the wearer's body for a scenario, a person's clicks on the first image).
+The CLI, the demo, the tests and the benchmarks build robots here; nothing in the packages
+imports this module.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from kinematics import HeadGeometry, load_head, reference_head
+from kinematics.camera import CameraIntrinsics, default_camera, load_camera
+
+#: How far off (px) the simulated person clicks the target's corners in the first image.
+CLICK_ERROR_PX = 2.5
+
+
+def wearer_for(scenario, seconds: float):
+    """The twin's wearer for a scenario: the placement body posed by the named placement motion,
+    placed in the world where the scenario says (the twin never imports placement itself)."""
+    from placement import motions
+    from placement.body import SEGMENTS, make_body
+    from runtime.twin.wearer import Wearer
+
+    body = make_body()
+    if scenario.motion == "stand":
+        m = motions.stand(body, seconds)
+    elif scenario.motion == "walk":
+        m = motions.walk(body, seconds, speed_m_s=scenario.walk_speed_m_s, cycle_s=1.2)
+    elif scenario.motion == "sit-down":
+        m = motions.sit_down(body, seconds)
+    else:
+        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down")
+    G = scenario.T_world_body() @ body.segment_transforms(m)
+    return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
+
+
+def _head(head) -> HeadGeometry:
+    if head is None:
+        return reference_head()
+    return head if isinstance(head, HeadGeometry) else load_head(head)
+
+
+def _camera(camera) -> CameraIntrinsics:
+    if camera is None:
+        return default_camera()
+    return camera if isinstance(camera, CameraIntrinsics) else load_camera(camera)
+
+
+def make_twin(head=None, mount=None, camera=None, ideal_imu: bool = False, ideal_camera: bool = False, **twin_options):
+    """A Twin with a head (a HeadGeometry, a head.toml path, or None for the reference head), a
+    mount (a Mount, a mount.toml path, or None for the default shoulder mount) and a camera
+    (CameraIntrinsics, a camera.toml path, or None for the default); a real IMU's errors
+    (BMI088) and a real camera's blur, exposure and noise unless ``ideal_imu`` /
+    ``ideal_camera``."""
+    if ideal_imu:
+        twin_options["imu"] = None
+    if ideal_camera:
+        twin_options["camera_sensor"] = None
+    from runtime.twin.mount import Mount, default_shoulder_mount, load_mount
+    from runtime.twin.twin import Twin
+
+    if mount is None:
+        m = default_shoulder_mount
+    elif isinstance(mount, Mount) or callable(mount):
+        m = mount
+    else:
+        m = load_mount(mount)
+    return Twin(_head(head), _camera(camera), m, wearer_for, **twin_options)
+
+
+def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
+    """A simulated person's clicks on the twin's current (first) image: the Target the closed
+    loop starts from. Reads the twin's truth: the composition root's job, not the runtime's."""
+    from runtime.twin.operator import clicked_target as click
+
+    return click(twin, error_px, np.random.default_rng(seed))
+
+
+def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: int = 0, settings=None,
+                progress: bool = True, on_period=None, start_target=None, click_error_px: float = CLICK_ERROR_PX) -> dict:
+    """The closed loop on the twin for a scenario: the twin as the Robot and the TruthSource
+    for scoring, started from a simulated person's clicks on its first image, ``click_error_px``
+    off (or from ``start_target``). Writes the files of ``wvr sim run`` into ``out``; returns
+    the summary."""
+    from runtime.apps.closed_loop import run_closed_loop
+    from runtime.gaze import ControllerSettings
+    from runtime.twin.scenarios import get_scenario
+
+    sc = get_scenario(scenario)
+    twin.configure(sc, seed=seed, seconds=seconds)
+    secs = sc.seconds if seconds is None else float(seconds)
+    if not (np.isfinite(click_error_px) and click_error_px >= 0):
+        raise ValueError(f"click error {click_error_px!r} px must be a distance >= 0 (pixels)")
+    start = start_target if start_target is not None else \
+        (lambda obs: clicked_target(twin, error_px=click_error_px, seed=seed))
+    s = run_closed_loop(twin, task, out, start_target=start, seconds=secs,
+                        settings=settings or ControllerSettings(), progress=progress, truth=twin, label=sc.name,
+                        task_info={"scenario": sc.name, "seed": seed}, on_period=on_period)
+    from kinematics import save_head
+
+    save_head(twin.head, Path(out) / "head.toml")
+    return s
+
+
+def make_rig(rig):
+    """A HardwareRig from a rig.toml path (or a loaded RigConfig): opens the Maestro, the camera
+    and the IMU; a missing or busy port is a one-line error."""
+    from runtime.drivers.rig import HardwareRig, RigConfig, load_rig
+
+    cfg = rig if isinstance(rig, RigConfig) else load_rig(rig)
+    return HardwareRig(cfg)
