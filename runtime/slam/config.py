@@ -115,7 +115,7 @@ class MapSettings:
     reloc_sigma_m: float = 0.02
     reloc_sigma_rad: float = 0.02
     # -- start-up from the known target --
-    target_sigma_m: float = 0.001        # the target's printed geometry
+    target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
     click_search_px: float = 6.0         # a clicked corner is sought this far from the click
     start_pixel_sigma: float = 0.5       # a refined corner's standard deviation, px
     start_max_rms_px: float = 1.5        # the refined corners must fit one pose this well

@@ -21,16 +21,24 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     position (existing features, their predictions) and ``border`` px from the image edge,
     strongest first."""
     H, W = image_grey.shape
-    mask = np.zeros((H, W), np.uint8)
-    mask[border:H - border, border:W - border] = 255
+    # Images 640 wide or more are searched at half resolution (a quarter of the work; a new
+    # feature's position only has to be near a corner, its template is what is tracked).
+    s = 2 if W >= 640 else 1
+    img = image_grey.astype(np.float32)
+    if s == 2:
+        img = cv2.pyrDown(img)
+    h, w = img.shape
+    b = int(np.ceil(border / s))
+    mask = np.zeros((h, w), np.uint8)
+    mask[b:h - b, b:w - b] = 255
     for u, v in np.asarray(occupied_uv, float).reshape(-1, 2):
         if np.isfinite(u) and np.isfinite(v):
-            cv2.circle(mask, (int(round(u)), int(round(v))), int(min_distance), 0, -1)
-    pts = cv2.goodFeaturesToTrack(image_grey.astype(np.float32), maxCorners=n, qualityLevel=quality,
-                                  minDistance=min_distance, mask=mask, blockSize=5, useHarrisDetector=False)
+            cv2.circle(mask, (int(round(u / s)), int(round(v / s))), int(np.ceil(min_distance / s)), 0, -1)
+    pts = cv2.goodFeaturesToTrack(img, maxCorners=n, qualityLevel=quality, minDistance=min_distance / s, mask=mask,
+                                  blockSize=5 if s == 1 else 3, useHarrisDetector=False)
     if pts is None:
         return np.empty((0, 2))
-    return pts.reshape(-1, 2).astype(float)
+    return pts.reshape(-1, 2).astype(float) * s        # pyrDown samples input pixel (2x, 2y)
 
 
 def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: int = TEMPLATE_SIZE,

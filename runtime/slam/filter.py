@@ -279,17 +279,35 @@ def update(state: State, ks, z, cam: CameraIntrinsics, R_pix, pred: Prediction |
 
 def add_inverse_depth_feature(state: State, uv, cam: CameraIntrinsics, rho0: float, sigma_rho: float, R_pix) -> int:
     """Start an inverse-depth feature at pixel ``uv`` (undelayed: in the state from now) and
-    return its index. ``P_yy = J_x P_vv J_x^T + J_uv R J_uv^T + sigma_rho^2 e_rho e_rho^T``,
-    ``P_yx = J_x P_v,:``."""
-    R = pixel_covariance(R_pix)
-    y, A, J_x, J_uv = inverse_depth.init_from_pixel(state.x[:state.cam_dim], uv, cam, rho0)
-    if not np.isfinite(y).all():
+    return its index (see :func:`add_inverse_depth_features`)."""
+    ks = add_inverse_depth_features(state, np.asarray(uv, float).reshape(1, 2), cam, rho0, sigma_rho, R_pix)
+    if not ks:
         raise FeatureNotMeasurable(f"pixel {np.asarray(uv).tolist()} cannot be unprojected by the {cam.model} lens model")
-    Jp = J_x[:, :POSE_DIM]
+    return ks[0]
+
+
+def add_inverse_depth_features(state: State, uvs, cam: CameraIntrinsics, rho0: float, sigma_rho: float,
+                               R_pix) -> list[int]:
+    """Start inverse-depth features at the pixels ``uvs`` (m, 2) (undelayed: in the state from
+    now), all at once, and return their indices (pixels the lens cannot unproject are skipped).
+    With each feature's ``y = g(x_v, uv)`` and Jacobians ``J_x`` (on r, q), ``J_uv``::
+
+        P_yx = J_x P_pose,:       P_yiyj = J_xi P_pose J_xj^T (+ J_uv R J_uv^T + sigma_rho^2 e e^T for i = j)
+    """
+    R = pixel_covariance(R_pix)
+    inits = [inverse_depth.init_from_pixel(state.x[:state.cam_dim], uv, cam, rho0) for uv in np.asarray(uvs, float)]
+    inits = [it for it in inits if np.isfinite(it[0]).all()]
+    if not inits:
+        return []
+    Jp = np.concatenate([J_x[:, :POSE_DIM] for _, _, J_x, _ in inits])          # (6m, 7)
     P_yx = Jp @ state.P[:POSE_DIM, :]
-    P_yy = P_yx[:, :POSE_DIM] @ Jp.T + J_uv @ R @ J_uv.T
-    P_yy[5, 5] += sigma_rho**2
-    return state.add_feature(INVERSE_DEPTH, y, P_yy, P_yx, anchor=A)
+    P_yy = P_yx[:, :POSE_DIM] @ Jp.T
+    for i, (_, _, _, J_uv) in enumerate(inits):
+        blk = slice(6 * i, 6 * i + 6)
+        P_yy[blk, blk] += J_uv @ R @ J_uv.T
+        P_yy[6 * i + 5, 6 * i + 5] += sigma_rho**2
+    return state.add_features([INVERSE_DEPTH] * len(inits), np.concatenate([y for y, _, _, _ in inits]), P_yy, P_yx,
+                              np.array([A for _, A, _, _ in inits]))
 
 
 def add_point_feature(state: State, uv, depth: float, var_depth: float, R_pix, cam: CameraIntrinsics) -> int:
@@ -310,9 +328,12 @@ def add_point_feature(state: State, uv, depth: float, var_depth: float, R_pix, c
     return state.add_feature(POINT, y, P_yy, P_yx)
 
 
-def convert_to_point(state: State, k: int) -> None:
-    """Turn inverse-depth feature ``k`` into a 3D point (first-order covariance transform)."""
-    if state.kinds[k] != INVERSE_DEPTH:
-        raise ValueError(f"feature {k} is a {state.kinds[k]} feature, not an inverse-depth one")
-    p, J = inverse_depth.to_point(state.feature(k), state.anchors[k])
-    state.convert_feature(k, POINT, p, J)
+def convert_to_point(state: State, k) -> None:
+    """Turn inverse-depth feature ``k`` (or each of a list) into a 3D point (first-order
+    covariance transform, one rebuild of ``P`` for all)."""
+    ks = [int(k) for k in np.atleast_1d(k)]
+    for k in ks:
+        if state.kinds[k] != INVERSE_DEPTH:
+            raise ValueError(f"feature {k} is a {state.kinds[k]} feature, not an inverse-depth one")
+    conv = [inverse_depth.to_point(state.feature(k), state.anchors[k]) for k in ks]
+    state.convert_features(ks, POINT, [p for p, _ in conv], [J for _, J in conv])

@@ -24,7 +24,7 @@ from .config import SlamConfig
 from .kernels import compiled_kernel
 from .quaternion import (normalise_quaternion_jacobian, quat_left_kernel, quat_right_kernel,
                          rotvec_to_quat_jacobian_kernel)
-from .state import BA_SLICE, BG_SLICE, NOISE_DIM, Q_SLICE, State, check_covariance, check_mean
+from .state import BA_SLICE, BG_SLICE, NOISE_DIM, Q_SLICE, SlamNumericalError, State, check_mean
 
 
 def _check_dt(dt) -> float:
@@ -117,23 +117,37 @@ def predict(state: State, dt: float, cfg: SlamConfig, noise_gain: float = 1.0) -
 
 def apply_camera_prediction(state: State, x_v_new: np.ndarray, F: np.ndarray, P_vv_new: np.ndarray,
                             where: str) -> None:
-    """Write a prediction of the camera block into the state, in place: ``x_v <- x_v_new``,
+    """Write a prediction of the camera block into the state: ``x_v <- x_v_new``,
     ``P_vv <- P_vv_new`` (symmetrised), ``P_vy <- F P_vy``; then ``q`` is renormalised with its
-    Jacobian (``where`` names the step in errors). Shared by the constant-velocity and the
-    inertial predictions."""
+    Jacobian (``where`` names the step in errors). Only the camera's rows and columns change, so
+    they are computed and checked first and then written in place (O(n) per camera row); on a
+    numerical failure :class:`SlamNumericalError` is raised and the state is unchanged. Shared
+    by the constant-velocity and the inertial predictions."""
     cd = state.cam_dim
-    x = state.x.copy()
-    x[:cd] = x_v_new
-    P = state.P.copy()
+    P = state.P
     rows = F @ P[:cd, :]
     rows[:, :cd] = 0.5 * (P_vv_new + P_vv_new.T)
+    x_v = np.array(x_v_new, float)
+    q_unit, J = normalise_quaternion_jacobian(x_v[Q_SLICE])
+    x_v[Q_SLICE] = q_unit
+    rows[Q_SLICE, :] = J @ rows[Q_SLICE, :]            # T P T^T, T = J on q: the q rows ...
+    rows[:, Q_SLICE] = rows[:, Q_SLICE] @ J.T          # ... and, in the camera block, its columns
+    blk = rows[:, :cd]
+    rows[:, :cd] = 0.5 * (blk + blk.T)
+    x = state.x.copy()
+    x[:cd] = x_v
+    check_mean(x, where, state.describe)
+    if not np.isfinite(rows).all():
+        i, j = np.argwhere(~np.isfinite(rows))[0]
+        raise SlamNumericalError(f"covariance P has NaN/Inf after {where}, first at ({i}, {j}) "
+                                 f"({state.describe(int(i))} / {state.describe(int(j))})")
+    d = np.diag(rows[:, :cd])
+    if d.min() < 0:
+        i = int(np.argmin(d))
+        raise SlamNumericalError(f"covariance P has a negative variance P[{i},{i}] = {d[i]:.3g} after {where} "
+                                 f"({state.describe(i)})")
     P[:cd, :] = rows
     P[:, :cd] = rows.T                  # written as the transpose: P stays exactly symmetric
-    q_unit, J = normalise_quaternion_jacobian(x[Q_SLICE])
-    x[Q_SLICE] = q_unit
-    apply_quaternion_jacobian(P, J)
-    check_mean(x, where, state.describe)
-    state.P = check_covariance(P, where, check_psd=False, describe=state.describe)
     state.x = x
 
 

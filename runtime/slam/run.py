@@ -124,10 +124,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame "
                             "(or from a saved map: --map FILE)")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     writer = None
-    if video:
-        (out / "video").mkdir(exist_ok=True)
     slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
     if seq.imu is not None:
         slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
@@ -136,31 +133,39 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     frames = seq.frames()
     said = 0
-    for i in tqdm(range(n), desc="slam", unit="frame", disable=not progress):
-        f = next(frames)
-        if not slam.started:
-            if saved is not None:
-                slam.start_from_map(saved, f.t)
-                if f.image is not None:
-                    slam.process(f.image, f.t)
+    # The start comes before the progress bar: a target that cannot start SLAM is one line.
+    f = next(frames)
+    if saved is not None:
+        slam.start_from_map(saved, f.t)
+        if f.image is not None:
+            slam.process(f.image, f.t)
+    else:
+        if f.image is None:
+            raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
+        slam.start(f.image, f.t, seq.target)
+        moved = slam.refined_target.moved_px
+        if progress:
+            print(f"slam: target corners found {np.round(moved, 1).tolist()} px from their clicks")
+    out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
+    if video:
+        (out / "video").mkdir(exist_ok=True)
+    bar = tqdm(total=n, initial=1, desc="slam", unit="frame", disable=not progress)
+    for i in range(n):
+        if i > 0:
+            f = next(frames)
+            bar.update(1)
+            if f.image is None:
+                slam.skip(f.t, f.problem or "unreadable")
+                skipped += 1
+                tqdm.write(f"slam: frame {i} ({f.path.name}, t = {f.t:.3f} s) skipped: {f.problem or 'unreadable'}")
             else:
-                if f.image is None:
-                    raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
-                slam.start(f.image, f.t, seq.target)
-                moved = slam.refined_target.moved_px
-                tqdm.write(f"slam: target corners found {np.round(moved, 1).tolist()} px from their clicks")
-        elif f.image is None:
-            slam.skip(f.t, f.problem or "unreadable")
-            skipped += 1
-            tqdm.write(f"slam: frame {i} ({f.path.name}, t = {f.t:.3f} s) skipped: {f.problem or 'unreadable'}")
-        else:
-            prev_lost = slam.lost
-            st = slam.process(f.image, f.t)
-            if st.lost and not prev_lost:
-                tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
-                           f"{slam.s.lost_after} frames; re-localising against the map")
-            if prev_lost and not st.lost:
-                tqdm.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
+                prev_lost = slam.lost
+                st = slam.process(f.image, f.t)
+                if st.lost and not prev_lost:
+                    tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
+                               f"{slam.s.lost_after} frames; re-localising against the map")
+                if prev_lost and not st.lost:
+                    tqdm.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
         for msg in slam.messages[said:]:
             tqdm.write(msg)
         said = len(slam.messages)
@@ -176,6 +181,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
                 writer = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
                                          (frame.shape[1], frame.shape[0]))
             writer.write(frame)
+    bar.close()
     if writer is not None:
         writer.release()
     if times:

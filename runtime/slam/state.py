@@ -295,32 +295,49 @@ class State:
         (identity by default). The grown covariance is checked by the guard; on failure nothing
         changes.
         """
-        d = int(FEATURE_DIMS[kind])
+        return self.add_features([kind], y, P_yy, P_yx, None if anchor is None else [anchor], check_psd)[0]
+
+    def add_features(self, kinds, y, P_yy, P_yx, anchors=None, check_psd: bool = False) -> list[int]:
+        """Append features of ``kinds`` (m,) at once (one rebuild of ``P``) and return their
+        indices. y : (d,) their parameters concatenated; P_yy : (d, d) their joint covariance;
+        P_yx : (d, n) the cross-covariance with the current state; anchors : (m, 3, 3) or None
+        (identities). Checked by the guard; on failure nothing changes."""
+        kinds = [int(k) for k in kinds]
+        dims = [int(FEATURE_DIMS[k]) for k in kinds]
+        d = sum(dims)
         n = self.n
         y = np.asarray(y, dtype=float).reshape(-1)
         P_yy = np.asarray(P_yy, dtype=float)
         P_yx = np.asarray(P_yx, dtype=float)
+        names = " + ".join(FEATURE_NAMES[k] for k in kinds)
         if y.shape != (d,) or P_yy.shape != (d, d) or P_yx.shape != (d, n):
-            raise ValueError(f"a {FEATURE_NAMES[kind]} feature needs y ({d},), P_yy ({d}, {d}), P_yx ({d}, {n}); "
+            what = f"a {names} feature needs" if len(kinds) == 1 else f"new features ({names}) need"
+            raise ValueError(f"{what} y ({d},), P_yy ({d}, {d}), P_yx ({d}, {n}); "
                              f"got {y.shape}, {P_yy.shape}, {P_yx.shape}")
-        x_new = np.concatenate([self.x, y])
+        first = self.n_features
+        offsets = n + np.concatenate([[0], np.cumsum(dims)[:-1]]) if dims else np.zeros(0)
+
+        def new_name(i: int) -> str:
+            j = int(np.searchsorted(offsets, i, side="right")) - 1
+            return f"feature {first + j} ({FEATURE_NAMES[kinds[j]]}), the new one"
+
         if not np.isfinite(y).all():
             bad = (n + np.flatnonzero(~np.isfinite(y))).tolist()
-            raise SlamNumericalError(f"state mean x has NaN/Inf after add_feature at indices {bad} (feature "
-                                     f"{self.n_features} ({FEATURE_NAMES[kind]}), the new one)")
+            raise SlamNumericalError(f"state mean x has NaN/Inf after add_feature at indices {bad} "
+                                     f"({new_name(bad[0])})")
         P_new = np.empty((n + d, n + d))
         P_new[:n, :n] = self.P
         P_new[n:, :n] = P_yx
         P_new[:n, n:] = P_yx.T
         P_new[n:, n:] = 0.5 * (P_yy + P_yy.T)
-        name = f"feature {self.n_features} ({FEATURE_NAMES[kind]}), the new one"
         P_new = check_covariance(P_new, "add_feature", check_psd=check_psd,
-                                 describe=lambda i: self.describe(i) if i < n else name)
-        self.x, self.P = x_new, P_new
-        self.kinds = np.append(self.kinds, int(kind))
-        self.anchors = np.concatenate([self.anchors, (np.eye(3) if anchor is None else np.asarray(anchor, float))[None]])
+                                 describe=lambda i: self.describe(i) if i < n else new_name(i))
+        A = np.tile(np.eye(3), (len(kinds), 1, 1)) if anchors is None else np.asarray(anchors, float).reshape(-1, 3, 3)
+        self.x, self.P = np.concatenate([self.x, y]), P_new
+        self.kinds = np.concatenate([self.kinds, np.array(kinds, np.intp)])
+        self.anchors = np.concatenate([self.anchors, A])
         self.starts = feature_starts(self.cam_dim, self.kinds)
-        return self.n_features - 1
+        return list(range(first, self.n_features))
 
     def remove_features(self, ks) -> None:
         """Delete the features ``ks``: their entries of ``x`` and rows and columns of ``P``. Later
@@ -345,29 +362,54 @@ class State:
         """Replace feature ``k`` by a feature of another ``kind`` with parameters ``y_new`` =
         f(y) and ``J`` = df/dy (d_new, d_old): ``P`` is transformed to first order (the feature's
         rows become ``J P_y,:``, its block ``J P_yy J^T``). Its place in the order is kept."""
-        sl = self.feature_slice(k)
+        self.convert_features([k], kind, [y_new], [J])
+
+    def convert_features(self, ks, kind: int, ys_new, Js) -> None:
+        """:meth:`convert_feature` for several features at once (one rebuild of ``P``):
+        ``P <- T P T^T`` with ``T`` the identity except each converted feature's ``J``."""
+        ks = [self._check_k(k) for k in ks]
+        if not ks:
+            return
         d_new = int(FEATURE_DIMS[kind])
-        J = np.asarray(J, float)
-        y_new = np.asarray(y_new, float).reshape(-1)
-        if J.shape != (d_new, sl.stop - sl.start) or y_new.shape != (d_new,):
-            raise ValueError(f"convert_feature: J must be ({d_new}, {sl.stop - sl.start}) and y_new ({d_new},)")
-        before = np.r_[np.arange(sl.start), np.arange(sl.stop, self.n)]
-        rows = J @ self.P[sl, :]                            # (d_new, n)
-        n_new = self.n - (sl.stop - sl.start) + d_new
-        idx_new = np.r_[np.arange(sl.start), np.arange(sl.start + d_new, n_new)]
-        P = np.empty((n_new, n_new))
-        P[np.ix_(idx_new, idx_new)] = self.P[np.ix_(before, before)]
-        blk = rows[:, sl] @ J.T
-        P[sl.start:sl.start + d_new, idx_new] = rows[:, before]
-        P[idx_new, sl.start:sl.start + d_new] = rows[:, before].T
-        P[sl.start:sl.start + d_new, sl.start:sl.start + d_new] = 0.5 * (blk + blk.T)
-        x = np.concatenate([self.x[:sl.start], y_new, self.x[sl.stop:]])
-        check_mean(x, "convert_feature", self.describe)
-        self.P = check_covariance(P, "convert_feature", check_psd=False, describe=self.describe)
-        self.x = x
-        self.kinds = self.kinds.copy()
-        self.kinds[k] = kind
-        self.starts = feature_starts(self.cam_dim, self.kinds)
+        kinds = self.kinds.copy()
+        for k in ks:
+            kinds[k] = kind
+        starts_new = feature_starts(self.cam_dim, kinds)
+        n_new = state_size(self.cam_dim, kinds)
+        conv = {}
+        for k, y, J in zip(ks, ys_new, Js):
+            sl = self.feature_slice(k)
+            J = np.asarray(J, float)
+            y = np.asarray(y, float).reshape(-1)
+            if J.shape != (d_new, sl.stop - sl.start) or y.shape != (d_new,):
+                raise ValueError(f"convert_features: J must be ({d_new}, {sl.stop - sl.start}) and y_new ({d_new},)")
+            if not (np.isfinite(y).all() and np.isfinite(J).all()):
+                raise SlamNumericalError(f"convert_features: feature {k}'s conversion is not finite")
+            conv[k] = (sl, slice(int(starts_new[k]), int(starts_new[k]) + d_new), y, J)
+        # The entries that only move: old index -> new index.
+        moved = np.ones(self.n, bool)
+        for sl, _, _, _ in conv.values():
+            moved[sl] = False
+        old_keep = np.flatnonzero(moved)
+        new_keep = np.ones(n_new, bool)
+        for _, ns, _, _ in conv.values():
+            new_keep[ns] = False
+        new_keep = np.flatnonzero(new_keep)
+        A = np.empty((n_new, self.n))                           # T P
+        A[new_keep] = self.P[old_keep]
+        for sl, ns, _, J in conv.values():
+            A[ns] = J @ self.P[sl]
+        P = np.empty((n_new, n_new))                            # (T P) T^T
+        P[:, new_keep] = A[:, old_keep]
+        for sl, ns, _, J in conv.values():
+            P[:, ns] = A[:, sl] @ J.T
+        for _, ns, _, _ in conv.values():                       # symmetric by construction, but
+            P[ns, :] = P[:, ns].T                               # written once, as the transpose
+        x = np.empty(n_new)
+        x[new_keep] = self.x[old_keep]
+        for _, ns, y, _ in conv.values():
+            x[ns] = y
+        self.x, self.P, self.kinds, self.starts = x, P, kinds, starts_new
 
     def guard(self, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True) -> None:
         """Run :func:`check_mean` and :func:`check_covariance` (symmetrising ``P``)."""

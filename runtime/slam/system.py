@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from kinematics.camera import CameraIntrinsics, in_image, unproject
@@ -41,7 +42,7 @@ from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .corners import grey, new_features
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
-from .filter import (FeatureNotMeasurable, add_inverse_depth_feature, add_point_feature, convert_to_point,
+from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, convert_to_point,
                      innovation_covariances)
 from .inertial import ImuStream, predict_imu
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
@@ -136,7 +137,6 @@ class _Track:
         self.low_matches = 0 if localised else slam.s.lost_after
         self.localised = localised
         self.score = 0.0
-        self.normals_n = -1
         self.last: FrameMeasurements | None = None
 
     @property
@@ -168,10 +168,9 @@ class _Track:
             every = 1 if not self.localised else s.reloc_every
             if (self.low_matches - s.lost_after) % every == 0:
                 st.relocalised = self._relocalise(g)
-        if s.warp != "known" and (frame % s.normals_every == 0 or self.state.n_features != self.normals_n):
-            self._normals_from_map()
-            self.normals_n = self.state.n_features
-        visible = self._measure(g, st, frame)
+        if s.warp != "known" and frame % s.normals_every == 0:
+            self._normals_from_map()        # neighbours' planes change slowly: every few frames
+        self._measure(g, st, frame)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, st.searched / 2):
                 self.state.x, self.state.P = saved
@@ -327,12 +326,13 @@ class _Track:
         become points (Civera et al.'s linearity index)."""
         state = self.state
         _, L = self._points_and_linearity()
-        for k in np.flatnonzero(L < self.slam.s.linearity_threshold)[::-1]:
+        ks = np.flatnonzero(L < self.slam.s.linearity_threshold)
+        if len(ks):
             try:
-                convert_to_point(state, int(k))
+                convert_to_point(state, ks)
+                st.converted += len(ks)
             except SlamNumericalError:
-                continue
-            st.converted += 1
+                pass
         st.initialising = int((state.kinds == INVERSE_DEPTH).sum())
 
     def _delete(self, st: FrameStats, frame: int) -> None:
@@ -394,22 +394,29 @@ class _Track:
             candidates = [c for c, ok in zip(candidates, stay) if ok] or candidates
         R0 = quat_to_rotation(self.state.q)
         ph = patch_half(slam.template_px)
-        for uv, tpl in candidates[:n]:
-            patch = first_view_patch(g, uv, ph)
-            if s.features == "particles":
+        chosen = candidates[:n]
+        if s.features == "particles":
+            for uv, tpl in chosen:
                 origin, d = ray_from_pixel(self.state.x_v, uv, cam)[:2]
                 p = depth_init.DepthParticles.create(origin, d, tpl, uv, s.particles, s.depth_near_m, s.depth_far_m)
-                self.rays.append((slam.new_id(), p, R0.copy(), patch))
-                continue
+                self.rays.append((slam.new_id(), p, R0.copy(), first_view_patch(g, uv, ph)))
+        elif chosen:
+            uvs = np.array([uv for uv, _ in chosen], float)
+            rays = unproject(cam, uvs) @ R0.T
+            ok = np.isfinite(rays).all(axis=1)
+            chosen, uvs, rays = [c for c, o in zip(chosen, ok) if o], uvs[ok], rays[ok]
             try:
-                add_inverse_depth_feature(self.state, uv, cam, s.rho0, s.sigma_rho, slam.cfg.sigma_pixel**2)
+                added = add_inverse_depth_features(self.state, uvs, cam, s.rho0, s.sigma_rho, slam.cfg.sigma_pixel**2)
             except (FeatureNotMeasurable, SlamNumericalError):
-                continue
-            ray = R0 @ unproject(cam, np.asarray(uv, float)[None])[0]
-            self.features.append(MapFeature(slam.new_id(), tpl, frame, self.state.r.copy(), patch=patch,
-                                            uv0=np.asarray(uv, float), R0=R0.copy(),
-                                            normal=-ray / np.linalg.norm(ray), last_seen=frame))
-            st.added += 1
+                added = []
+            if len(added) == len(chosen):
+                for (uv, tpl), ray in zip(chosen, rays):
+                    self.features.append(MapFeature(slam.new_id(), tpl, frame, self.state.r.copy(),
+                                                    patch=first_view_patch(g, uv, ph), uv0=np.asarray(uv, float),
+                                                    R0=R0.copy(), normal=-ray / np.linalg.norm(ray), last_seen=frame))
+                st.added += len(added)
+            elif added:                                 # cannot happen: the rays were checked above
+                self.state.remove_features(added)
         st.initialising = len(self.rays) if s.features == "particles" else int((self.state.kinds == INVERSE_DEPTH).sum())
 
     def _normals_from_map(self) -> None:
@@ -419,10 +426,11 @@ class _Track:
         if len(points) < 4:
             return
         Y = self.world_points()[points]
+        neighbours = cKDTree(Y).query_ball_point(Y, self.slam.s.plane_radius_m)
         for j, k in enumerate(points):
             f = self.features[k]
-            if not f.known:
-                n = local_plane_normal(Y, j, self.slam.s.plane_radius_m, self.slam.s.plane_tol_m)
+            if not f.known and len(neighbours[j]) >= 4:
+                n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf, self.slam.s.plane_tol_m)
                 if n is not None:
                     f.normal, f.normal_from_map = (n if n @ (f.r0 - Y[j]) > 0 else -n), True
 

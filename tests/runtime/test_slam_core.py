@@ -194,7 +194,7 @@ def test_offset_table_through_additions_removals_and_conversions(cam_dim):
     one or several features, anywhere) and conversion (State.convert_feature and
     filter.convert_to_point), every feature's parameters and every covariance block are those
     of the dense master record."""
-    cam = CAMERAS["pinhole"]
+    CAMERAS["pinhole"]
     rng = np.random.default_rng(6 + cam_dim)
     x_v = st.random_camera(rng, cam_dim=cam_dim)
     s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1, cam_dim))
