@@ -11,7 +11,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from runtime.sequence import open_sequence, read_trajectory  # noqa: E402
-from runtime.slam.eval import map_errors, trajectory_errors  # noqa: E402
+from runtime.eval import map_errors, trajectory_errors  # noqa: E402
 from runtime.slam.run import run_slam  # noqa: E402
 from runtime.twin.recorder import record  # noqa: E402
 from wvr.cli import make_twin  # noqa: E402

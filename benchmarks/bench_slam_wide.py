@@ -14,7 +14,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from kinematics.camera import CameraIntrinsics, save_camera  # noqa: E402
 from runtime.sequence import open_sequence, read_trajectory  # noqa: E402
-from runtime.slam.eval import trajectory_errors  # noqa: E402
+from runtime.eval import trajectory_errors  # noqa: E402
 from runtime.slam.run import run_slam  # noqa: E402
 from runtime.twin.recorder import record  # noqa: E402
 from wvr.cli import make_twin  # noqa: E402

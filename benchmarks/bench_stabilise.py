@@ -19,8 +19,9 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from runtime.sequence import open_sequence  # noqa: E402
 from runtime.twin.recorder import record  # noqa: E402
+from runtime.eval import rotation_errors_deg
 from runtime.vision2d.stabilise import (StabiliseSettings, bearings, detect_corners, fit_rotation,  # noqa: E402
-                                        gyro_rotation, rotation_errors_deg, stabilise_sequence, to_grey)
+                                        gyro_rotation, stabilise_sequence, to_grey)
 from wvr.cli import make_twin  # noqa: E402
 
 SECONDS = 6.0

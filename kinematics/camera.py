@@ -610,6 +610,12 @@ _NEWTON = {"brown": _newton_brown, "fisheye": _newton_fisheye}
 
 
 def _inverse(cam, uv, jac: bool):
+    if cam.model != "fisheye" and not any(cam.distortion.values()):
+        # brown or radial-sqrt with every term zero is the pinhole: its inverse exactly, no
+        # iteration (a fisheye with zero terms is still equidistant, not a pinhole).
+        xy = (uv - _centre(cam)) / _focal(cam)
+        J = np.broadcast_to(np.diag(1.0 / _focal(cam)), (len(uv), 2, 2)).copy() if jac else None
+        return xy, J
     if cam.model == "radial-sqrt":
         return _radial_sqrt_inverse(cam, uv, jac)
     xy = _NEWTON[cam.model](cam, (uv - _centre(cam)) / _focal(cam))

@@ -364,16 +364,26 @@ def cmd_track(args) -> int:
 def cmd_slam(args) -> int:
     from dataclasses import replace
 
+    from runtime.slam.config import MapSettings
     from runtime.slam.run import run_slam
-    from runtime.slam.system import MapSettings
 
-    settings = replace(MapSettings(), use_imu=not args.no_imu, bias_time_s=args.imu_bias_time)
+    settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
+                       features=args.features, measure_max=args.measure)
+    if args.save_map is not None:
+        check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends
-        totals = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, settings=settings)
-    print(f"{totals['frames']} frames ({totals['skipped']} skipped), {totals['features']} features in the map, "
-          f"{totals['mean_matched']:.1f} matched per frame, {totals['mean_ms_per_frame']:.1f} ms per frame"
-          + ("; track was LOST for " + str(totals["lost_frames"]) + " frames" if totals["lost"] else ""))
-    print(f"wrote {Path(args.out) / 'trajectory.tum'}, map.csv, stats.json")
+        r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, settings=settings,
+                     save_map=args.save_map, map_path=args.map)
+    print(f"{r.frames} frames ({r.skipped} skipped), {r.features} features in the map, {r.mean_matched:.1f} of "
+          f"{r.mean_searched:.1f} searched matched per frame, {r.median_ms_per_frame:.1f} ms per frame (median)"
+          + (f"; located in the map after {r.first_localised_s:.2f} s" if args.map and r.first_localised_s is not None else "")
+          + (f"; track LOST for {r.lost_frames} frames" if r.lost else "")
+          + (f"; IMU: {r.imu['gaps']} gaps, {r.imu['spikes']} spikes, {r.imu['non_finite']} bad samples"
+             if r.imu.get("rows") and (r.imu["gaps"] or r.imu["spikes"] or r.imu["non_finite"]) else ""))
+    if args.map and r.first_localised_s is None:
+        print("the camera was never located in the saved map: trajectory.tum is empty")
+    print(f"wrote {Path(args.out) / 'trajectory.tum'}, map.csv, stats.json"
+          + (f"; the map in {args.save_map}" if args.save_map else ""))
     return 0
 
 
@@ -384,7 +394,7 @@ MIN_COVERAGE = 0.9
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
     from runtime.sequence import open_sequence, read_trajectory
-    from runtime.slam.eval import trajectory_errors
+    from runtime.eval import trajectory_errors
 
     result = Path(args.result)
     if not result.is_dir():
@@ -404,13 +414,13 @@ def cmd_eval(args) -> int:
     if math.isfinite(e.rpe_trans_rmse_m):
         print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
     else:
-        from runtime.slam.eval import associate
+        from runtime.eval import associate
 
         span = float(np.ptp(est.t[associate(est, seq.groundtruth)[0]]))
         print(f"RPE over {e.rpe_delta_s:g} s: cannot be computed: the matched poses span {span:.2f} s, not more "
               f"than {e.rpe_delta_s:g} s")
     if seq.depth_paths is not None and (result / "map.csv").exists():
-        from runtime.slam.eval import map_errors
+        from runtime.eval import map_errors
 
         m = map_errors(seq, result / "map.csv")
         if len(m.errors_m):
@@ -866,9 +876,17 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--max-frames", type=_positive_int, help="stop after N frames")
     sl.add_argument("--video", action="store_true", help="write annotated frames (features, ellipses, particles) and video.mp4")
     sl.add_argument("--no-imu", action="store_true",
-                    help="ignore imu.txt (camera only: the constant-velocity motion model)")
-    sl.add_argument("--imu-bias-time", type=_nonnegative, default=0.0, metavar="S",
-                    help="estimate the IMU's biases with this time constant, s (default 0: the IMU is calibrated)")
+                    help="ignore imu.txt: camera only, the constant-velocity motion model (the paper's system)")
+    sl.add_argument("--no-imu-biases", action="store_true",
+                    help="with an IMU, take it as calibrated (no gyro and accelerometer bias states)")
+    sl.add_argument("--features", choices=["inverse-depth", "particles"], default="inverse-depth",
+                    help="how new features start: inverse depth, in the filter from the first frame (default), or "
+                         "the paper's particle depth pdf")
+    sl.add_argument("--measure", type=_positive_int, default=30, metavar="N",
+                    help="features measured per frame, at most (default 30)")
+    sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
+    sl.add_argument("--map", metavar="FILE",
+                    help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")

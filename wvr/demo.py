@@ -136,18 +136,18 @@ def stage_twin(out: Path, context: dict) -> str:
 def stage_slam(out: Path, context: dict) -> str:
     """MonoSLAM on the twin's recording, evaluated against its ground truth."""
     from runtime.sequence import open_sequence, read_trajectory
-    from runtime.slam.eval import trajectory_errors
+    from runtime.eval import trajectory_errors
     from runtime.slam.run import run_slam
 
     seq = context.get("sequence")
     if seq is None:
         return "No recording to run on."
-    totals = run_slam(seq, out, video=False, progress=False)
+    r = run_slam(seq, out, video=False, progress=False)
     e = trajectory_errors(read_trajectory(out / "trajectory.tum"), open_sequence(seq).groundtruth)
     rel = out.name
     return "\n".join([
-        f"{totals['frames']} frames, {totals['features']} features in the final map, {totals['mean_matched']:.1f} "
-        f"matched per frame, {totals['mean_ms_per_frame']:.1f} ms per frame{', track LOST' if totals['lost'] else ''}. "
+        f"{r.frames} frames, {r.features} features in the final map, {r.mean_matched:.1f} "
+        f"matched per frame, {r.median_ms_per_frame:.1f} ms per frame{', track LOST' if r.lost else ''}. "
         f"Files: [trajectory.tum]({rel}/trajectory.tum), [map.csv]({rel}/map.csv), [stats.json]({rel}/stats.json).", "",
         f"- ATE without alignment (the target fixes the frame): RMSE {100 * e.ate_rmse_m:.2f} cm, "
         f"max {100 * e.ate_max_m:.2f} cm",

@@ -223,7 +223,7 @@ class ClosedLoop:
         if callable(self.start_target):
             self.start_target = self.start_target(obs)
         if self.task.uses_slam:
-            self.slam = MonoSLAM(self.info.camera)
+            self.slam = MonoSLAM(self.info.camera, imu=True)
             self.slam.start(obs.image, obs.t, self.start_target)
         self.ctl = GazeController(self.info.head, self.info.camera, obs.q, self.dt, self.settings)
         if self.task.kind == "track":
@@ -307,7 +307,7 @@ class ClosedLoop:
             if obs.fresh_image:
                 slam.process(obs.image, obs.t, imu=np.vstack(self._imu_pending))
                 self._imu_pending = []
-        lost = bool(slam is not None and slam.stats and slam.stats[-1].lost)
+        lost = bool(slam is not None and not slam.localised)
         T_est = slam.T_world_cam() if slam is not None and not lost else None
         v_est = slam.state.v.copy() if T_est is not None else None
         if i == 1 and not self.external:

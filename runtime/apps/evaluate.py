@@ -12,7 +12,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics, project, unproject
 
 from ..sequence import Trajectory
-from ..slam.eval import trajectory_errors
+from ..eval import trajectory_errors
 
 
 def fixation_errors(T_world_cam: np.ndarray, p_world: np.ndarray) -> np.ndarray:

@@ -1,78 +1,95 @@
 """Inertial prediction: when the sequence has an IMU (``imu.txt`` of shared/formats.md, gyro and
-specific force in the camera's optical frame), its samples replace the constant-velocity
-model's guesses between frames.
+specific force in the camera's optical frame), its samples drive the prediction between frames
+instead of the constant-velocity model's guesses.
 
-The constant-velocity model (motion.py) treats every acceleration as an unknown impulse; a
-monocular map then holds its scale only through the features, and loses it where they are
-replaced quickly (a walk past a bench). Integrating the accelerometer ties the velocity, and so
-the scale, to metres; the gyro carries the orientation through frames with few matches. For
-each IMU sample interval ``d`` (s), with ``omega`` (rad/s) and ``f`` (m/s^2) the sample's gyro
-and specific force, camera frame::
+For each IMU sample interval ``d`` (s), with ``omega_m`` (rad/s) and ``f_m`` (m/s^2) the sample's
+gyro and specific force, and the bias states ``b_g``, ``b_a`` (zero without them)::
 
+    omega  = omega_m - b_g,  f = f_m - b_a
     a      = R(q) f + g                    (g = (0, 0, -9.81) m/s^2, world)
     r_new  = r + v d + a d^2 / 2
     v_new  = v + a d
     q_new  = q * q(omega d)
-    w_new  = omega                         (the state's w is the latest measured rate)
+    w_new  = omega                         (the state's w is the latest corrected rate)
+    b_new  = b                             (+ their random walks, motion.bias_walk)
 
-The sensor noise enters as white noise on ``f`` and ``omega`` (densities ``imu_accel_noise``,
-m/s^2/sqrt(Hz), and ``imu_gyro_noise``, rad/s/sqrt(Hz), from :class:`SlamConfig`) and covers
-unmodelled effects (biases, the samples being held over their interval) through the same
-densities; there are no bias states, so an IMU with large biases needs larger densities.
+White noise on ``f_m`` and ``omega_m`` (densities ``imu_accel_noise``, ``imu_gyro_noise``)
+enters through ``G = dx_new/d(f, omega)``.
+
+The samples are checked as they arrive (:class:`ImuStream`): non-finite values, values beyond
+a MEMS part's range (spikes) and samples out of time order are dropped and counted; a frame
+interval with a gap longer than ``imu_max_gap_s`` (or no samples) is predicted by the
+constant-velocity model instead, and counted.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .motion import apply_camera_prediction
-from .state import (CAMERA_DIM, CAMERA_SLICE, DEFAULT_CONFIG, SlamConfig, State, compiled_kernel, quat_left_kernel, quat_right_kernel, rotation_derivatives_kernel,
-                    rotation_kernel, rotvec_to_quat_jacobian_kernel)
+from .config import MapSettings, SlamConfig
+from .kernels import compiled_kernel
+from .motion import apply_camera_prediction, bias_walk
+from .quaternion import (quat_left_kernel, quat_right_kernel, rotation_derivatives_kernel, rotation_kernel,
+                         rotvec_to_quat_jacobian_kernel)
+from .state import State
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
 
 @compiled_kernel(rotation_kernel, rotation_derivatives_kernel, quat_left_kernel, quat_right_kernel,
                  rotvec_to_quat_jacobian_kernel)
-def imu_step_kernel(x_v, omega, f, d):
-    """Compiled body of :func:`imu_step_and_jacobians` (the equations of the module docstring)."""
+def imu_step_kernel(x_v, omega_m, f_m, d):
+    """One IMU interval (the equations of the module docstring): x_v_new, F = dx_new/dx_v
+    (cd, cd) and G = dx_new/d(f_m, omega_m) (cd, 6), for a camera block of 13 or 19 numbers."""
+    cd = x_v.shape[0]
+    biased = cd >= 19
     q = x_v[3:7]
+    omega = omega_m.copy()
+    f = f_m.copy()
+    if biased:
+        omega -= x_v[13:16]
+        f -= x_v[16:19]
     R = rotation_kernel(q[0], q[1], q[2], q[3])
     a = R @ f + GRAVITY
     p, dp_dtheta = rotvec_to_quat_jacobian_kernel(omega[0] * d, omega[1] * d, omega[2] * d)
     L = quat_left_kernel(q[0], q[1], q[2], q[3])
-    x_new = np.empty(13)
+    x_new = x_v.copy()
     x_new[0:3] = x_v[0:3] + x_v[7:10] * d + 0.5 * a * d * d
     x_new[3:7] = L @ p
     x_new[7:10] = x_v[7:10] + a * d
     x_new[10:13] = omega
     D = rotation_derivatives_kernel(q[0], q[1], q[2], q[3])
-    da_dq = np.empty((3, 4))                                         # d(R(q) f)/dq
+    da_dq = np.empty((3, 4))
     for k in range(4):
         da_dq[:, k] = D[k] @ f
-    F = np.eye(13)
+    dq_domega = (L @ dp_dtheta) * d
+    F = np.eye(cd)
     for i in range(3):
         F[i, 7 + i] = d
-        F[10 + i, 10 + i] = 0.0                                      # w is replaced by the sample
+        F[10 + i, 10 + i] = 0.0
     F[0:3, 3:7] = 0.5 * d * d * da_dq
     F[7:10, 3:7] = d * da_dq
     F[3:7, 3:7] = quat_right_kernel(p[0], p[1], p[2], p[3])
-    G = np.zeros((13, 6))
+    if biased:
+        F[0:3, 16:19] = -0.5 * d * d * R
+        F[7:10, 16:19] = -d * R
+        F[3:7, 13:16] = -dq_domega
+        for i in range(3):
+            F[10 + i, 13 + i] = -1.0
+    G = np.zeros((cd, 6))
     G[0:3, 0:3] = 0.5 * d * d * R
     G[7:10, 0:3] = d * R
-    G[3:7, 3:6] = (L @ dp_dtheta) * d
+    G[3:7, 3:6] = dq_domega
     for i in range(3):
         G[10 + i, 3 + i] = 1.0
     return x_new, F, G
 
 
 def imu_step_and_jacobians(x_v, omega, f, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One IMU interval: ``x_v_new`` (13,), ``F = dx_v_new/dx_v`` (13, 13) and
-    ``G = dx_v_new/d(f, omega)`` (13, 6).
-
-    x_v : (13,) camera block. omega : (3,) rad/s, f : (3,) m/s^2 (camera frame). d : s >= 0.
-    """
-    return imu_step_kernel(np.asarray(x_v, float).reshape(CAMERA_DIM), np.asarray(omega, float).reshape(3),
+    """One IMU interval: ``x_v_new``, ``F`` and ``G`` (see :func:`imu_step_kernel`)."""
+    return imu_step_kernel(np.ascontiguousarray(np.asarray(x_v, float).reshape(-1)), np.asarray(omega, float).reshape(3),
                            np.asarray(f, float).reshape(3), float(d))
 
 
@@ -80,12 +97,12 @@ def imu_step_and_jacobians(x_v, omega, f, d: float) -> tuple[np.ndarray, np.ndar
 def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
     """The camera block and its covariance through every interval, and the product of the
     intervals' Jacobians (for the camera-map cross-covariance)."""
-    F_total = np.eye(13)
+    cd = x_v.shape[0]
+    F_total = np.eye(cd)
     for j in range(len(ds)):
         d = ds[j]
         x_v, F, G = imu_step_kernel(x_v, omegas[j], fs[j], d)
-        # White noise of density s over d seconds: a sample mean with variance s^2 / d.
-        Pn = np.zeros((6, 6))
+        Pn = np.zeros((6, 6))               # white noise of density s over d: variance s^2 / d
         for i in range(3):
             Pn[i, i] = sa * sa / d
             Pn[3 + i, 3 + i] = sg * sg / d
@@ -94,40 +111,114 @@ def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
     return x_v, P_vv, F_total
 
 
-def imu_intervals(imu: np.ndarray, t0: float, t1: float) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """Split ``(t0, t1]`` at the IMU sample times: a list of ``(d, omega, f)``, each interval
-    using the latest sample at or before its start (zero-order hold). ``imu`` : (k, 7) rows
-    ``[t, wx, wy, wz, ax, ay, az]`` sorted by time, which must include a sample at or before t0.
-    """
+def imu_intervals(imu: np.ndarray, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split ``(t0, t1]`` at the IMU sample times: durations (k,), rates (k, 3), specific forces
+    (k, 3), each interval using the latest sample at or before its start (zero-order hold).
+    ``imu`` : (m, 7) rows ``[t, wx, wy, wz, ax, ay, az]`` sorted by time, with a sample at or
+    before t0."""
     imu = np.asarray(imu, float).reshape(-1, 7)
     times = imu[:, 0]
-    i = int(np.searchsorted(times, t0, side="right")) - 1
-    if i < 0:
+    i0 = int(np.searchsorted(times, t0, side="right")) - 1
+    if i0 < 0:
         raise ValueError(f"no IMU sample at or before t = {t0:.6f} s")
-    out, t = [], t0
-    while t < t1:
-        t_next = times[i + 1] if i + 1 < len(imu) and times[i + 1] < t1 else t1
-        if t_next > t:
-            out.append((t_next - t, imu[i, 1:4], imu[i, 4:7]))
-        t = t_next
-        if i + 1 < len(imu) and times[i + 1] <= t:
-            i += 1
-    return out
+    i1 = int(np.searchsorted(times, t1, side="left"))          # samples strictly before t1
+    edges = np.concatenate([[t0], times[i0 + 1:i1], [t1]])
+    d = np.diff(edges)
+    rows = imu[i0:max(i1, i0 + 1)]
+    keep = d > 0
+    return d[keep], rows[keep, 1:4], rows[keep, 4:7]
 
 
-def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig = DEFAULT_CONFIG,
-                noise_gain: float = 1.0) -> None:
-    """The EKF prediction from ``t0`` to ``t1`` through the IMU samples, in place.
-
-    ``P_vv`` is propagated interval by interval with each interval's noise, and the camera-map
-    cross-covariance by the product of the intervals' Jacobians; then ``q`` is renormalised with
-    its Jacobian and the guard runs. ``noise_gain`` scales the noise densities (lost track).
-    """
-    steps = imu_intervals(imu, t0, t1)
+def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig, noise_gain: float = 1.0) -> None:
+    """The EKF prediction from ``t0`` to ``t1`` through the IMU samples, in place: ``P_vv``
+    interval by interval with each interval's noise, the camera-map cross-covariance by the
+    product of the intervals' Jacobians; then ``q`` is renormalised with its Jacobian."""
+    ds, omegas, fs = imu_intervals(imu, t0, t1)
+    cd = state.cam_dim
     sa, sg = noise_gain * cfg.imu_accel_noise, noise_gain * cfg.imu_gyro_noise
-    ds = np.array([d for d, _, _ in steps])
-    omegas = np.array([w for _, w, _ in steps]).reshape(-1, 3)
-    fs = np.array([f for _, _, f in steps]).reshape(-1, 3)
-    x_v, P_vv, F_total = _propagate_kernel(state.x[CAMERA_SLICE].copy(), state.P[CAMERA_SLICE, CAMERA_SLICE].copy(),
-                                           ds, omegas, fs, sa, sg)
-    apply_camera_prediction(state, x_v, F_total, P_vv, "inertial predict", cfg)
+    x_v, P_vv, F_total = _propagate_kernel(state.x[:cd].copy(), state.P[:cd, :cd].copy(),
+                                           ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg)
+    bias_walk(P_vv, t1 - t0, cfg)
+    apply_camera_prediction(state, x_v, F_total, P_vv, "inertial predict")
+
+
+@dataclass
+class ImuCounts:
+    """What :class:`ImuStream` dropped or could not use (written to stats.json)."""
+
+    rows: int = 0
+    non_finite: int = 0
+    spikes: int = 0
+    out_of_order: int = 0
+    gaps: int = 0                 # frame intervals predicted without the IMU because of a gap
+
+
+class ImuStream:
+    """The IMU rows the filter has been given, checked as they arrive, and the rows covering a
+    frame interval when they are fit to use."""
+
+    def __init__(self, settings: MapSettings):
+        self.s = settings
+        self.rows = np.zeros((0, 7))
+        self.counts = ImuCounts()
+        self.t_last = -np.inf
+
+    def add(self, rows) -> list[str]:
+        """Queue rows (k, 7) ``[t, wx, wy, wz, ax, ay, az]``; returns a line per kind of
+        problem found in them (empty when all were good)."""
+        rows = np.asarray(rows, float).reshape(-1, 7)
+        if not len(rows):
+            return []
+        c = self.counts
+        c.rows += len(rows)
+        problems = []
+        finite = np.isfinite(rows).all(axis=1)
+        spike = finite & ((np.linalg.norm(rows[:, 1:4], axis=1) > self.s.imu_max_rate_rad_s)
+                          | (np.linalg.norm(rows[:, 4:7], axis=1) > self.s.imu_max_accel_m_s2))
+        ok = finite & ~spike
+        t = rows[:, 0]
+        order = np.zeros(len(rows), bool)
+        last = self.t_last
+        for i in np.flatnonzero(ok):
+            if t[i] <= last:
+                order[i] = True
+            else:
+                last = t[i]
+        ok &= ~order
+        if (~finite).any():
+            c.non_finite += int((~finite).sum())
+            problems.append(f"{int((~finite).sum())} IMU samples with NaN/Inf dropped")
+        if spike.any():
+            c.spikes += int(spike.sum())
+            problems.append(f"{int(spike.sum())} IMU samples beyond the sensor's range (spikes) dropped")
+        if order.any():
+            c.out_of_order += int(order.sum())
+            problems.append(f"{int(order.sum())} IMU samples out of time order dropped")
+        good = rows[ok]
+        if len(good):
+            self.t_last = float(good[-1, 0])
+            self.rows = np.vstack([self.rows, good]) if len(self.rows) else good
+        return problems
+
+    def covering(self, t0: float, t1: float) -> np.ndarray | None:
+        """The rows for the interval (t0, t1], or None if they do not cover it without a gap
+        longer than ``imu_max_gap_s`` (then the frame is predicted without the IMU, counted)."""
+        r = self.rows
+        if not len(r) or r[0, 0] > t0 or r[-1, 0] < t1 - self.s.imu_max_gap_s:
+            if len(r) and r[0, 0] <= t1:
+                self.counts.gaps += 1
+            return None
+        i0 = int(np.searchsorted(r[:, 0], t0, side="right")) - 1
+        i1 = int(np.searchsorted(r[:, 0], t1, side="right"))
+        seg = r[i0:i1]
+        edges = np.concatenate([[t0], seg[1:, 0], [t1]])
+        if np.diff(edges).max() > self.s.imu_max_gap_s:
+            self.counts.gaps += 1
+            return None
+        return seg
+
+    def drop_before(self, t: float) -> None:
+        """Forget rows no longer needed: keep the one holding at ``t`` and those after."""
+        if len(self.rows):
+            k = max(int(np.searchsorted(self.rows[:, 0], t, side="right")) - 1, 0)
+            self.rows = self.rows[k:]

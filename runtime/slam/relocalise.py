@@ -17,7 +17,6 @@ import numpy as np
 
 from kinematics.camera import CameraIntrinsics, undistort
 
-from .search import HALF
 
 FLAT_VARIANCE = 4.0      # grey levels^2: windows flatter than a 2-level standard deviation
 
@@ -41,12 +40,15 @@ def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: fl
     which (m,) template each belongs to.
     """
     img = image.astype(np.float32, copy=False)
+    if not templates:
+        return np.zeros((0, 2)), np.zeros(0, np.intp)
+    half = templates[0].shape[0] // 2
     # OpenCV's normalised score is rounding noise where the window is flat (a plain sheet, a
     # black frame), and can reach 1 there: such windows cannot hold a feature and are excluded.
-    size = (2 * HALF + 1, 2 * HALF + 1)
+    size = (2 * half + 1, 2 * half + 1)
     mean = cv2.boxFilter(img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
     sq = cv2.boxFilter(img * img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
-    var = (sq - mean * mean)[HALF:img.shape[0] - HALF, HALF:img.shape[1] - HALF]
+    var = (sq - mean * mean)[half:img.shape[0] - half, half:img.shape[1] - half]
     flat = var < FLAT_VARIANCE
     uv, owner = [], []
     for i, t in enumerate(templates):
@@ -56,9 +58,9 @@ def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: fl
             _, best, _, (u, v) = cv2.minMaxLoc(ncc)
             if 2.0 * (1.0 - best) > max_score:
                 break
-            uv.append((u + HALF, v + HALF))
+            uv.append((u + half, v + half))
             owner.append(i)
-            ncc[max(v - 2 * HALF, 0):v + 2 * HALF + 1, max(u - 2 * HALF, 0):u + 2 * HALF + 1] = -1.0
+            ncc[max(v - 2 * half, 0):v + 2 * half + 1, max(u - 2 * half, 0):u + 2 * half + 1] = -1.0
     return np.array(uv, float).reshape(-1, 2), np.array(owner, np.intp)
 
 

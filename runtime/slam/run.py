@@ -1,113 +1,213 @@
-"""Running MonoSLAM over a sequence folder: trajectory.tum, map.csv, stats.json, video frames."""
+"""Running MonoSLAM over a sequence folder: trajectory.tum, map.csv, stats.json, and optionally
+annotated frames, video.mp4 and a saved map."""
 
 from __future__ import annotations
 
 import csv
 import json
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
+from kinematics.camera import CameraIntrinsics, undistort
+
 from ..sequence import SequenceError, open_sequence, write_trajectory
-from .measurement import h_and_jacobians_many
+from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
+from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
-from .state import DEFAULT_CONFIG, SlamConfig, feature_slice
-from .system import MapSettings, MonoSLAM, SlamStartError
+from .measurement import predict, predict_points
+from .system import MonoSLAM, SlamStartError
+
+
+@dataclass(frozen=True)
+class SlamRun:
+    """What a run over a sequence gives (also written to stats.json's totals)."""
+
+    frames: int
+    skipped: int
+    features: int
+    added: int
+    deleted: int
+    converted: int
+    lost_frames: int
+    lost: bool
+    relocalised: int
+    first_localised_s: float | None     # when the camera was first placed in the map (a saved map's session)
+    mean_searched: float
+    mean_matched: float
+    mean_outliers: float
+    mean_ms_per_frame: float
+    median_ms_per_frame: float
+    imu_frames: int
+    imu: dict = field(default_factory=dict)
+    messages: tuple = ()
+
+
+def check_lens_invertible(cam: CameraIntrinsics) -> None:
+    """Refuse a camera whose distortion has no inverse over the whole image (as the twin's
+    recorder does): SLAM unprojects every pixel it starts a feature at."""
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1, 33), np.linspace(0, cam.height - 1, 25))
+    xy = undistort(cam, np.column_stack([u.ravel(), v.ravel()]))
+    if not np.isfinite(xy).all():
+        raise SequenceError("camera.toml: the lens model's distortion has no inverse over the whole image; "
+                            "check the distortion terms (a calibration's k1..k4 or kd1)")
 
 
 def _annotate(image: np.ndarray, slam: MonoSLAM) -> np.ndarray:
     """Every mapped feature at its predicted position with its 3-sigma search ellipse (target
-    points red, others green) and the particles of initialising features (yellow dots), as in
-    the paper's Fig. 7 and 8."""
+    points red, points green, inverse-depth features yellow) and the particles of initialising
+    rays (yellow dots), as in the paper's Fig. 7 and 8."""
     img = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if not slam.localised:
+        return img
     st = slam.state
     if st.n_features:
-        uv, S, valid = innovation_covariances(st, np.arange(st.n_features), slam.cam, slam.cfg.R_pix)
-        for k in np.flatnonzero(valid):
+        pred = predict(st, np.arange(st.n_features), slam.cam)
+        S = innovation_covariances(st, pred, slam.cfg.sigma_pixel**2)
+        for k in np.flatnonzero(pred.valid):
             w, V = np.linalg.eigh(S[k])
             ang = np.degrees(np.arctan2(V[1, 1], V[0, 1]))
-            axes = tuple(int(max(3 * np.sqrt(max(x, 0)), 1)) for x in w[::-1])
-            colour = (0, 0, 255) if slam.features[k].known else (0, 200, 0)
-            c = tuple(int(round(x)) for x in uv[k])
+            axes = tuple(int(min(max(3 * np.sqrt(max(x, 0)), 1), 2000)) for x in w[::-1])
+            colour = (0, 0, 255) if slam.features[k].known else ((0, 220, 255) if st.kinds[k] == INVERSE_DEPTH
+                                                                 else (0, 200, 0))
+            c = tuple(int(round(x)) for x in pred.uv[k])
             if abs(c[0]) < 10000 and abs(c[1]) < 10000:
                 cv2.ellipse(img, c, axes, ang, 0, 360, colour, 1)
                 cv2.circle(img, c, 2, colour, -1)
     for _, p, *_ in slam.rays:
-        uv, _, _, valid = h_and_jacobians_many(st.x_v, p.points(), slam.cam)
+        uv, _, valid = predict_points(st.x_v, p.points(), slam.cam)
         for q in uv[valid]:
             if np.all(np.abs(q) < 10000):
                 cv2.circle(img, tuple(int(round(x)) for x in q), 1, (0, 220, 255), -1)
     return img
 
 
+def write_map_csv(path: Path, slam: MonoSLAM) -> None:
+    """One row per map feature: its id, kind, point (world, m) and the point's 3x3 covariance
+    (an inverse-depth feature's through its conversion Jacobian), first frame, whether a target
+    point, inlier matches and searches."""
+    st = slam.state
+    Y = slam.world_points()
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "kind", "x", "y", "z", *[f"P{i}{j}" for i in range(3) for j in range(3)], "first_frame",
+                    "known", "measured", "attempted"])
+        for k, feat in enumerate(slam.features):
+            sl = st.feature_slice(k)
+            P = st.P[sl, sl]
+            if st.kinds[k] == INVERSE_DEPTH:
+                _, J = inverse_depth.to_point(st.feature(k), st.anchors[k])
+                P = J @ P @ J.T
+            w.writerow([feat.id, FEATURE_NAMES[st.kinds[k]], *map(repr, map(float, Y[k])), *map(repr, map(float, P.ravel())),
+                        feat.first_frame, int(feat.known), feat.successes, feat.attempts])
+
+
 def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = None, video: bool = False,
-             cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings(), progress: bool = True) -> dict:
-    """Run over a sequence; returns the totals written to stats.json."""
+             cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings(), progress: bool = True,
+             save_map: str | Path | None = None, map_path: str | Path | None = None, seed: int = 0) -> SlamRun:
+    """Run over a sequence and write trajectory.tum, map.csv, stats.json (and video/ with
+    ``video``) into ``out``; ``save_map`` : also save the final map there (map_io.py);
+    ``map_path`` : start from a saved map instead of the target (re-localise in its frame)."""
+    from . import map_io
+
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"--max-frames {max_frames}: give at least 1 frame")
     seq = open_sequence(seq_path)
-    if seq.target is None:
-        raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame")
+    if len(seq) == 0:
+        raise SequenceError(f"{seq.root}/rgb.txt lists no images; a sequence needs at least one frame")
+    check_lens_invertible(seq.camera)
+    saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
+    if saved is None and seq.target is None:
+        raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame "
+                            "(or from a saved map: --map FILE)")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     writer = None
-    if video:
-        (out / "video").mkdir(exist_ok=True)
-    slam = MonoSLAM(seq.camera, cfg, settings)
+    slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
+    if seq.imu is not None:
+        slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
     times, poses = [], []
     skipped = 0
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     frames = seq.frames()
-    for i in tqdm(range(n), desc="slam", unit="frame", disable=not progress):
-        f = next(frames)
-        if slam.state is None:
+    said = 0
+    # The start comes before the progress bar: a target that cannot start SLAM is one line.
+    f = next(frames)
+    if saved is not None:
+        slam.start_from_map(saved, f.t)
+        if f.image is not None:
+            slam.process(f.image, f.t)
+    else:
+        if f.image is None:
+            raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
+        slam.start(f.image, f.t, seq.target)
+        moved = slam.refined_target.moved_px
+        if progress:
+            print(f"slam: target corners found {np.round(moved, 1).tolist()} px from their clicks")
+    out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
+    if video:
+        (out / "video").mkdir(exist_ok=True)
+    bar = tqdm(total=n, initial=1, desc="slam", unit="frame", disable=not progress)
+    for i in range(n):
+        if i > 0:
+            f = next(frames)
+            bar.update(1)
             if f.image is None:
-                raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
-            slam.start(f.image, f.t, seq.target)
-            if seq.imu is not None:
-                slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
-        elif f.image is None:
-            slam.skip(f.t, f.problem or "unreadable")
-            skipped += 1
-        else:
-            st = slam.process(f.image, f.t)
-            if st.lost and (len(slam.stats) < 2 or not slam.stats[-2].lost):
-                tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 matches "
-                           f"for {slam.s.lost_after} frames; searching wider as uncertainty grows")
-        times.append(f.t)
-        poses.append(slam.T_world_cam())
+                slam.skip(f.t, f.problem or "unreadable")
+                skipped += 1
+                tqdm.write(f"slam: frame {i} ({f.path.name}, t = {f.t:.3f} s) skipped: {f.problem or 'unreadable'}")
+            else:
+                prev_lost = slam.lost
+                st = slam.process(f.image, f.t)
+                if st.lost and not prev_lost:
+                    tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
+                               f"{slam.s.lost_after} frames; re-localising against the map")
+                if prev_lost and not st.lost:
+                    tqdm.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
+        for msg in slam.messages[said:]:
+            tqdm.write(msg)
+        said = len(slam.messages)
+        T = slam.T_world_cam()
+        if np.isfinite(T).all():
+            times.append(f.t)
+            poses.append(T)
         if video and f.image is not None:
             frame = _annotate(f.image, slam)
             cv2.imwrite(str(out / "video" / f"{i:06d}.png"), frame)
             if writer is None:
-                # One playable file besides the frames, at the sequence's own rate.
                 fps = (n - 1) / max(seq.timestamps[n - 1] - seq.timestamps[0], 1e-6) if n > 1 else 30.0
                 writer = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
                                          (frame.shape[1], frame.shape[0]))
             writer.write(frame)
+    bar.close()
     if writer is not None:
         writer.release()
-    write_trajectory(out / "trajectory.tum", np.array(times), np.array(poses),
-                     header="MonoSLAM camera-to-world poses (optical frame), TUM order")
-    with open(out / "map.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["id", "x", "y", "z", *[f"P{i}{j}" for i in range(3) for j in range(3)], "first_frame",
-                    "known", "measured", "attempted"])
-        for k, feat in enumerate(slam.features):
-            y = slam.state.feature(k)
-            P = slam.state.P[feature_slice(k), feature_slice(k)]
-            w.writerow([feat.id, *map(repr, map(float, y)), *map(repr, map(float, P.ravel())), feat.first_frame,
-                        int(feat.known), feat.successes, feat.attempts])
+    if times:
+        write_trajectory(out / "trajectory.tum", np.array(times), np.array(poses),
+                         header="MonoSLAM camera-to-world poses (optical frame), TUM order")
+    else:
+        (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
+    write_map_csv(out / "map.csv", slam)
+    if save_map is not None:
+        map_io.save_map(save_map, slam)
     per_frame = [asdict(s) for s in slam.stats]
     proc = [s for s in slam.stats[1:] if not s.skipped]
-    totals = {
-        "frames": len(slam.stats), "skipped": skipped, "features": len(slam.features),
-        "added": sum(s.added for s in slam.stats), "deleted": sum(s.deleted for s in slam.stats),
-        "lost_frames": sum(1 for s in slam.stats if s.lost), "lost": any(s.lost for s in slam.stats),
-        "mean_matched": float(np.mean([s.matched for s in proc])) if proc else 0.0,
-        "mean_ms_per_frame": 1000 * float(np.mean([s.seconds for s in proc])) if proc else 0.0,
-        "median_ms_per_frame": 1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
-    }
-    (out / "stats.json").write_text(json.dumps({"totals": totals, "frames": per_frame}, indent=1))
-    return totals
+    mean = lambda v: float(np.mean(v)) if len(v) else 0.0  # noqa: E731
+    first = next((s.t for s in slam.stats if not s.lost), None)     # first frame in the map
+    lost_frames = sum(1 for s in slam.stats if s.lost and first is not None and s.t > first) if first is not None \
+        else len(slam.stats)
+    result = SlamRun(
+        frames=len(slam.stats), skipped=skipped, features=len(slam.features),
+        added=sum(s.added for s in slam.stats), deleted=sum(s.deleted for s in slam.stats),
+        converted=sum(s.converted for s in slam.stats), lost_frames=lost_frames, lost=lost_frames > 0,
+        relocalised=sum(1 for s in slam.stats if s.relocalised),
+        first_localised_s=(first - slam.stats[0].t) if first is not None else None,
+        mean_searched=mean([s.searched for s in proc]), mean_matched=mean([s.matched for s in proc]),
+        mean_outliers=mean([s.outliers for s in proc]),
+        mean_ms_per_frame=1000 * mean([s.seconds for s in proc]),
+        median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
+        imu_frames=sum(1 for s in proc if s.imu), imu=asdict(slam.imu.counts), messages=tuple(slam.messages))
+    (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
+    return result

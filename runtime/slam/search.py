@@ -41,13 +41,17 @@ def ellipse_box(uv: np.ndarray, S: np.ndarray, n_sigma: float = 3.0) -> tuple[in
     return math.floor(u - hu), math.floor(v - hv), math.ceil(u + hu), math.ceil(v + hv)
 
 
-def extract_template(image: np.ndarray, uv) -> np.ndarray | None:
-    """The 15 x 15 grey patch centred on the nearest pixel to uv, or None near the border."""
-    u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+def extract_template(image: np.ndarray, uv, size: int = TEMPLATE_SIZE) -> np.ndarray | None:
+    """The size x size (odd) grey patch centred exactly on uv (bilinear at a sub-pixel uv, so
+    a match of it reports where uv's content is), or None near the border."""
+    half = size // 2
+    u, v = float(uv[0]), float(uv[1])
     h, w = image.shape[:2]
-    if u - HALF < 0 or v - HALF < 0 or u + HALF >= w or v + HALF >= h:
+    if not (half <= u <= w - 1 - half and half <= v <= h - 1 - half):
         return None
-    return image[v - HALF:v + HALF + 1, u - HALF:u + HALF + 1].astype(np.float32).copy()
+    if u == int(u) and v == int(v):
+        return image[int(v) - half:int(v) + half + 1, int(u) - half:int(u) + half + 1].astype(np.float32).copy()
+    return cv2.getRectSubPix(image.astype(np.float32, copy=False), (size, size), (u, v))
 
 
 @compiled_kernel()
@@ -61,7 +65,7 @@ def search(image: np.ndarray, template: np.ndarray, uv_pred: np.ndarray, S: np.n
            n_sigma: float = 3.0, max_score: float = 0.4, max_area: int = 200_000) -> Match:
     """Best match of ``template`` within the n-sigma ellipse of S around uv_pred in a grey image.
 
-    image : (H, W) float32 or uint8 grey. template : (15, 15). S : (2, 2) innovation covariance,
+    image : (H, W) float32 or uint8 grey. template : (t, t), t odd. S : (2, 2) innovation covariance,
     pixels^2. A match is ``found`` if its normalised SSD is at most ``max_score``. An ellipse
     wider than ``max_area`` pixels (a lost feature) or outside the image is not searched.
     """
@@ -74,15 +78,16 @@ def search(image: np.ndarray, template: np.ndarray, uv_pred: np.ndarray, S: np.n
     u0, v0, u1, v1 = ellipse_box(uv_pred, S, n_sigma)
     if (u1 - u0 + 1) * (v1 - v0 + 1) > max_area:
         return miss
-    u0, v0 = max(u0, HALF), max(v0, HALF)
-    u1, v1 = min(u1, W - 1 - HALF), min(v1, H - 1 - HALF)
+    half = template.shape[0] // 2
+    u0, v0 = max(u0, half), max(v0, half)
+    u1, v1 = min(u1, W - 1 - half), min(v1, H - 1 - half)
     if u1 < u0 or v1 < v0:
         return miss
     a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
     det = a * c - b * b
     if not det > 0:
         return miss
-    window = img[v0 - HALF:v1 + HALF + 1, u0 - HALF:u1 + HALF + 1]
+    window = img[v0 - half:v1 + half + 1, u0 - half:u1 + half + 1]
     t = template if template.dtype == np.float32 else template.astype(np.float32)
     ncc = cv2.matchTemplate(window, t, cv2.TM_CCOEFF_NORMED)
     i, j, best, du, dv = _best_in_ellipse(ncc, float(u0 - uv_pred[0]), float(v0 - uv_pred[1]),

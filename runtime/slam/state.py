@@ -1,12 +1,12 @@
-"""The MonoSLAM state: its layout (written once, here), the quaternion convention, the filter's
-parameters and the covariance guard.
+"""The filter's state: its layout (written once, here), the per-feature offset table, and the
+covariance guard.
 
 State vector (SI units)
 -----------------------
-``x = [x_v, y_0, y_1, ..., y_{N-1}]``, ``n = 13 + 3 N`` numbers, with one full covariance
-``P`` (n, n) (a single EKF over camera and map, as in MonoSLAM).
+``x = [x_v, y_0, y_1, ..., y_{N-1}]`` with one full covariance ``P`` (n, n): a single EKF over
+camera and map, as in MonoSLAM.
 
-camera block ``x_v`` (13), indices 0..12:
+camera block ``x_v``, 13 numbers, or 19 with IMU bias states:
 
 ====== ======= ==========================================================================
 slice  symbol  meaning
@@ -14,342 +14,56 @@ slice  symbol  meaning
 0:3    r       position of the camera's optical centre in the world frame, m
 3:7    q       unit quaternion, **w x y z order**, rotating camera (optical frame: x right,
                y down, z forward) coordinates into the world frame: ``p_world = R(q) p_cam
-               + r``. (TUM files store the same rotation in x y z w order; scipy's Rotation
-               also uses x y z w.)
+               + r`` (quaternion.py)
 7:10   v       linear velocity of the optical centre, world frame, m/s
-10:13  w       angular velocity, **camera (optical) frame**, rad/s, as in MonoSLAM: the
-               motion model composes on the right, ``q_new = q * q(w dt)``
+10:13  w       angular velocity, camera (optical) frame, rad/s; ``q_new = q * q(w dt)``
+13:16  b_g     gyro bias, camera frame, rad/s (only with bias states)
+16:19  b_a     accelerometer bias, camera frame, m/s^2 (only with bias states)
 ====== ======= ==========================================================================
 
-feature ``k`` (0-based), indices ``13 + 3k .. 13 + 3k + 2``: a 3D point in the world frame, m.
-Removing feature ``k`` shifts every later feature down by one index.
-
-Quaternions
------------
-``q = (w, x, y, z)``; the product is Hamilton's, ``(q * p)`` applies ``p`` first:
-``R(q * p) = R(q) R(p)``. :func:`quat_to_rotation` uses the homogeneous quadratic formula
-(``R(s q) = s^2 R(q)``, no normalisation inside), so it and its derivative
-:func:`rotation_derivatives` are defined on all of R^4; every Jacobian in this package with
-respect to ``q`` treats its four components as independent variables of that formula
-(finite differences perturb them one at a time, without renormalising). The norm is kept at 1
-by an explicit renormalisation step with its own Jacobian (motion.py).
+features: each feature ``k`` has a kind (features/: a 3D point, an inverse-depth ray, ...)
+that fixes its size, and starts at ``State.starts[k]``; the offsets are kept in this table,
+recomputed whenever a feature is added, removed or converted, so no code computes an index from
+a fixed feature size. Each feature also carries a constant ``anchor`` (3, 3) rotation its model
+may use (the inverse-depth model's reference frame for its angles; identity for points).
 
 Covariance and the quaternion's norm direction
 ----------------------------------------------
 Renormalising ``q`` multiplies the covariance by ``J = (I - q q^T)`` (at ``|q| = 1``), which
-removes the variance along ``q`` itself. ``P`` is therefore positive *semi*-definite with one
-exact null direction (the norm of ``q``, which no measurement sees because a projection is
-invariant to scaling the point); restricted to the other ``n - 1`` directions it is positive
-definite. :func:`check_covariance` accepts eigenvalues down to ``-psd_rel_tol * max(diag P)``
-(rounding) and rejects anything more negative, and any NaN or Inf, with a message naming the
-problem.
+removes the variance along ``q`` itself: ``P`` is positive *semi*-definite with one exact null
+direction. :func:`check_covariance` accepts eigenvalues down to ``-psd_rel_tol * max(diag P)``
+and rejects anything more negative, and any NaN or Inf, naming the problem.
 """
 
 from __future__ import annotations
 
-import hashlib
-import inspect
-import math
-from dataclasses import dataclass, fields
-from pathlib import Path
+from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import scipy.linalg
 
-# ---------------------------------------------------------------------------------------------
-# Compiled kernels
-# ---------------------------------------------------------------------------------------------
-
-# Source files each kernel made by compiled_kernel is built from (its own and its callees').
-_KERNEL_SOURCES: dict = {}
-
-
-def compiled_kernel(*callees):
-    """Decorator: ``numba.njit(cache=True, error_model="numpy")`` for a kernel of this package,
-    which may call the compiled functions ``callees`` of other modules.
-
-    numba's on-disk cache is invalidated only when the kernel's own file changes, yet a kernel's
-    machine code contains its callees: after an edit to, say, a lens model in
-    kinematics/camera.py, the cached measurement kernel would go on projecting with the old one.
-    So the cache's freshness stamp is extended with the content of every file the kernel is built
-    from (its own, its callees', and theirs, transitively). The stamp is numba's internal API; if
-    this numba has none, kernels with callees elsewhere are compiled without an on-disk cache
-    (correct, only slower to start). ``error_model="numpy"``: a division by zero gives inf/NaN
-    instead of raising, as in numpy.
-    """
-    def decorate(fn):
-        files = {inspect.getsourcefile(fn)}
-        for c in callees:
-            files |= _KERNEL_SOURCES.get(c) or {inspect.getsourcefile(c.py_func)}
-        kernel = numba.njit(cache=True, error_model="numpy")(fn)
-        if len(files) > 1:
-            cache_file = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
-            if hasattr(cache_file, "_source_stamp"):
-                digest = hashlib.sha256(b"".join(Path(f).read_bytes() for f in sorted(files))).hexdigest()
-                cache_file._source_stamp = (cache_file._source_stamp, digest)
-            else:
-                kernel = numba.njit(error_model="numpy")(fn)
-        _KERNEL_SOURCES[kernel] = frozenset(files)
-        return kernel
-    return decorate
-
+from .features import FEATURE_DIMS, FEATURE_NAMES
+from .kernels import compiled_kernel
 
 # ---------------------------------------------------------------------------------------------
 # Layout
 # ---------------------------------------------------------------------------------------------
 
-CAMERA_DIM = 13  #: numbers in the camera block x_v
-FEATURE_DIM = 3  #: numbers per point feature
-NOISE_DIM = 6  #: the impulse n = (V, Omega) = dt (a, alpha) of the motion model
+CAMERA_DIM = 13          #: the MonoSLAM camera block
+CAMERA_DIM_BIASED = 19   #: with gyro and accelerometer bias states
+POSE_DIM = 7             #: r and q: the part of the camera block a measurement sees
+NOISE_DIM = 6            #: the constant-velocity impulse n = (V, Omega) = dt (a, alpha)
 
-R_SLICE = slice(0, 3)  #: r, optical centre, world, m
-Q_SLICE = slice(3, 7)  #: q, w x y z, camera -> world
-V_SLICE = slice(7, 10)  #: v, world, m/s
-W_SLICE = slice(10, 13)  #: w, camera frame, rad/s
-CAMERA_SLICE = slice(0, CAMERA_DIM)
+R_SLICE = slice(0, 3)
+Q_SLICE = slice(3, 7)
+V_SLICE = slice(7, 10)
+W_SLICE = slice(10, 13)
+BG_SLICE = slice(13, 16)
+BA_SLICE = slice(16, 19)
 
+_CAMERA_NAMES = (("r", R_SLICE), ("q", Q_SLICE), ("v", V_SLICE), ("w", W_SLICE), ("b_g", BG_SLICE),
+                 ("b_a", BA_SLICE))
 
-def feature_start(k: int) -> int:
-    """Index of the first number of feature ``k`` in the state vector."""
-    return CAMERA_DIM + FEATURE_DIM * int(k)
-
-
-def feature_slice(k: int) -> slice:
-    """Slice of feature ``k`` (0-based) in the state vector."""
-    s = feature_start(k)
-    return slice(s, s + FEATURE_DIM)
-
-
-def feature_indices(ks) -> np.ndarray:
-    """(len(ks), 3) int array: the state indices of each feature in ``ks``."""
-    ks = np.asarray(ks, dtype=np.intp).reshape(-1)
-    return CAMERA_DIM + FEATURE_DIM * ks[:, None] + np.arange(FEATURE_DIM)[None, :]
-
-
-def state_size(n_features: int) -> int:
-    """Length of the state vector with ``n_features`` point features."""
-    return CAMERA_DIM + FEATURE_DIM * int(n_features)
-
-
-def count_features(n: int) -> int:
-    """Number of features in a state vector of length ``n``; ValueError if ``n`` is not 13 + 3N."""
-    if n < CAMERA_DIM or (n - CAMERA_DIM) % FEATURE_DIM:
-        raise ValueError(f"a MonoSLAM state has 13 + 3 N numbers, got {n}")
-    return (n - CAMERA_DIM) // FEATURE_DIM
-
-
-# ---------------------------------------------------------------------------------------------
-# Parameters
-# ---------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class SlamConfig:
-    """Every tunable number of the filter.
-
-    sigma_a : standard deviation of the linear acceleration impulse, m/s^2 (MonoSLAM's
-        hand-held value is 4). The velocity impulse per step is ``V = a dt``, variance
-        ``(sigma_a dt)^2`` per axis.
-    sigma_alpha : standard deviation of the angular acceleration impulse, rad/s^2 (MonoSLAM:
-        6); ``Omega = alpha dt``, variance ``(sigma_alpha dt)^2`` per axis (camera frame).
-    sigma_pixel : standard deviation of a feature's image measurement, pixels, per axis
-        (:attr:`R_pix` is the matching 2x2 covariance, px^2).
-    imu_accel_noise, imu_gyro_noise : noise densities of the IMU's specific force
-        (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) when an IMU drives the prediction
-        (inertial.py): about twice a good MEMS IMU's (0.0015 and 0.00015, the twin's), for the
-        samples' zero-order hold. They assume a calibrated IMU (biases removed); for a raw
-        one, turn on MapSettings.bias_time_s. On the twin's walk, 0.01 and 0.001 gave 2.9 cm
-        ATE against 0.6 cm.
-    psd_rel_tol : the covariance guard accepts eigenvalues down to
-        ``-psd_rel_tol * max(diag P)`` (rounding, and the quaternion's null direction).
-    check_psd : run the positive-semi-definiteness check (a Cholesky factorisation of
-        ``P + tol I``, O(n^3 / 3)) in the guard; finiteness and symmetry are always enforced.
-    """
-
-    sigma_a: float = 4.0
-    sigma_alpha: float = 6.0
-    imu_accel_noise: float = 0.003
-    imu_gyro_noise: float = 0.0003
-    sigma_pixel: float = 1.0
-    psd_rel_tol: float = 1e-9
-    check_psd: bool = True
-
-    def __post_init__(self):
-        for f in fields(self):
-            if f.name == "check_psd":
-                continue
-            v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"SlamConfig.{f.name} = {v!r} must be a finite number >= 0")
-
-    @property
-    def R_pix(self) -> np.ndarray:
-        """(2, 2) pixel measurement covariance, px^2: sigma_pixel^2 I."""
-        return self.sigma_pixel**2 * np.eye(2)
-
-
-DEFAULT_CONFIG = SlamConfig()
-
-
-# ---------------------------------------------------------------------------------------------
-# Quaternions (w x y z), see the module docstring
-# ---------------------------------------------------------------------------------------------
-
-def quat_multiply(q, p) -> np.ndarray:
-    """Hamilton product ``q * p`` of two (4,) quaternions in w x y z order."""
-    return quat_left_matrix(q) @ np.asarray(p, dtype=float)
-
-
-@compiled_kernel()
-def quat_left_kernel(w, x, y, z):
-    """(4, 4) L(q) of :func:`quat_left_matrix`, from the four components."""
-    return np.array([[w, -x, -y, -z],
-                     [x, w, -z, y],
-                     [y, z, w, -x],
-                     [z, -y, x, w]])
-
-
-@compiled_kernel()
-def quat_right_kernel(w, x, y, z):
-    """(4, 4) M(p) of :func:`quat_right_matrix`, from the four components."""
-    return np.array([[w, -x, -y, -z],
-                     [x, w, z, -y],
-                     [y, -z, w, x],
-                     [z, y, -x, w]])
-
-
-def quat_left_matrix(q) -> np.ndarray:
-    """(4, 4) ``L(q)`` with ``q * p = L(q) p`` (so ``d(q * p)/dp = L(q)``)."""
-    w, x, y, z = q
-    return quat_left_kernel(float(w), float(x), float(y), float(z))
-
-
-def quat_right_matrix(p) -> np.ndarray:
-    """(4, 4) ``M(p)`` with ``q * p = M(p) q`` (so ``d(q * p)/dq = M(p)``)."""
-    w, x, y, z = p
-    return quat_right_kernel(float(w), float(x), float(y), float(z))
-
-
-def quat_conjugate(q) -> np.ndarray:
-    """(w, -x, -y, -z): the inverse of a unit quaternion."""
-    q = np.asarray(q, dtype=float)
-    return np.array([q[0], -q[1], -q[2], -q[3]])
-
-
-# R(q) and dR/dq are compiled (numba) because the measurement model calls them from its own
-# compiled kernel (measurement.py); the public functions below are thin wrappers around the same
-# code, so each formula is written once.
-
-@compiled_kernel()
-def rotation_kernel(w, x, y, z):
-    """(3, 3) R(q) of :func:`quat_to_rotation`, from the four components."""
-    R = np.empty((3, 3))
-    R[0, 0] = w * w + x * x - y * y - z * z
-    R[0, 1] = 2.0 * (x * y - w * z)
-    R[0, 2] = 2.0 * (x * z + w * y)
-    R[1, 0] = 2.0 * (x * y + w * z)
-    R[1, 1] = w * w - x * x + y * y - z * z
-    R[1, 2] = 2.0 * (y * z - w * x)
-    R[2, 0] = 2.0 * (x * z - w * y)
-    R[2, 1] = 2.0 * (y * z + w * x)
-    R[2, 2] = w * w - x * x - y * y + z * z
-    return R
-
-
-@compiled_kernel()
-def rotation_derivatives_kernel(w, x, y, z):
-    """(4, 3, 3) dR/dq_i of :func:`rotation_derivatives`, from the four components."""
-    D = np.empty((4, 3, 3))
-    # d/dw
-    D[0, 0, 0], D[0, 0, 1], D[0, 0, 2] = w, -z, y
-    D[0, 1, 0], D[0, 1, 1], D[0, 1, 2] = z, w, -x
-    D[0, 2, 0], D[0, 2, 1], D[0, 2, 2] = -y, x, w
-    # d/dx
-    D[1, 0, 0], D[1, 0, 1], D[1, 0, 2] = x, y, z
-    D[1, 1, 0], D[1, 1, 1], D[1, 1, 2] = y, -x, -w
-    D[1, 2, 0], D[1, 2, 1], D[1, 2, 2] = z, w, -x
-    # d/dy
-    D[2, 0, 0], D[2, 0, 1], D[2, 0, 2] = -y, x, w
-    D[2, 1, 0], D[2, 1, 1], D[2, 1, 2] = x, y, z
-    D[2, 2, 0], D[2, 2, 1], D[2, 2, 2] = -w, z, -y
-    # d/dz
-    D[3, 0, 0], D[3, 0, 1], D[3, 0, 2] = -z, -w, x
-    D[3, 1, 0], D[3, 1, 1], D[3, 1, 2] = w, -z, y
-    D[3, 2, 0], D[3, 2, 1], D[3, 2, 2] = x, y, z
-    return 2.0 * D
-
-
-def quat_to_rotation(q) -> np.ndarray:
-    """(3, 3) ``R(q)`` by the homogeneous quadratic formula (a rotation when ``|q| = 1``;
-    ``R(s q) = s^2 R(q)``). ``R`` maps camera coordinates to world coordinates."""
-    w, x, y, z = q
-    return rotation_kernel(float(w), float(x), float(y), float(z))
-
-
-def rotation_derivatives(q) -> np.ndarray:
-    """(4, 3, 3): ``dR(q)/dq_i`` for i = w, x, y, z, of :func:`quat_to_rotation`.
-    (Transpose each to get ``dR(q)^T / dq_i``.)"""
-    w, x, y, z = q
-    return rotation_derivatives_kernel(float(w), float(x), float(y), float(z))
-
-
-# Below this rotation angle (rad) the rotation-vector maps use their Taylor series; at 1e-3
-# the first neglected terms are ~1e-17, below double-precision rounding of the O(1) terms.
-_SMALL_ANGLE = 1e-3
-
-
-@compiled_kernel()
-def rotvec_to_quat_jacobian_kernel(t0, t1, t2):
-    """q(theta) (4,) and dq/dtheta (4, 3) of :func:`rotvec_to_quat_jacobian`, from theta's components."""
-    theta = np.array([t0, t1, t2])
-    a2 = t0 * t0 + t1 * t1 + t2 * t2
-    a = math.sqrt(a2)
-    if a < _SMALL_ANGLE:
-        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0      # sin(a/2) / a
-        ds_over_a = -1.0 / 24.0 + a2 / 960.0         # s'(a) / a
-        c = 1.0 - a2 / 8.0 + a2 * a2 / 384.0         # cos(a/2)
-    else:
-        s = math.sin(0.5 * a) / a
-        c = math.cos(0.5 * a)
-        ds_over_a = (0.5 * a * c - math.sin(0.5 * a)) / (a2 * a)
-    q = np.empty(4)
-    q[0] = c
-    q[1:] = s * theta
-    J = np.empty((4, 3))
-    J[0] = -0.5 * s * theta                          # d cos(a/2) = -sin(a/2)/2 * theta/a
-    J[1:] = s * np.eye(3) + ds_over_a * np.outer(theta, theta)
-    return q, J
-
-
-def rotvec_to_quat_jacobian(theta) -> tuple[np.ndarray, np.ndarray]:
-    """``q(theta) = (cos(a/2), sin(a/2) theta / a)``, ``a = |theta|`` (rad), and its (4, 3)
-    Jacobian ``dq/dtheta``; exact (series) at and near ``theta = 0``, where ``dq/dtheta =
-    [0; I/2]``."""
-    t0, t1, t2 = np.asarray(theta, dtype=float).reshape(3)
-    return rotvec_to_quat_jacobian_kernel(float(t0), float(t1), float(t2))
-
-
-def rotvec_to_quat(theta) -> np.ndarray:
-    """Rotation vector (rad) to unit quaternion, w x y z."""
-    return rotvec_to_quat_jacobian(theta)[0]
-
-
-def quat_to_rotvec(q) -> np.ndarray:
-    """Unit quaternion (w x y z) to rotation vector (rad), angle in [0, pi]."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q)
-    if q[0] < 0:
-        q = -q
-    v = q[1:]
-    sv = float(np.linalg.norm(v))
-    if sv < 1e-12:
-        return 2.0 * v / q[0]
-    return 2.0 * math.atan2(sv, q[0]) * v / sv
-
-
-# ---------------------------------------------------------------------------------------------
-# The covariance guard
-# ---------------------------------------------------------------------------------------------
 
 class SlamNumericalError(FloatingPointError):
     """The filter would put NaN/Inf into the state, or the covariance stopped being symmetric
@@ -357,30 +71,40 @@ class SlamNumericalError(FloatingPointError):
     was before the failing step."""
 
 
+def _check_camera_dim(cam_dim: int) -> int:
+    if cam_dim not in (CAMERA_DIM, CAMERA_DIM_BIASED):
+        raise ValueError(f"the camera block has {CAMERA_DIM} numbers, or {CAMERA_DIM_BIASED} with IMU biases; "
+                         f"got {cam_dim}")
+    return int(cam_dim)
+
+
+def feature_starts(cam_dim: int, kinds: np.ndarray) -> np.ndarray:
+    """(N,) int: where each feature begins in the state vector."""
+    dims = FEATURE_DIMS[np.asarray(kinds, np.intp)]
+    return (cam_dim + np.concatenate([[0], np.cumsum(dims)[:-1]])).astype(np.intp) if len(dims) else \
+        np.zeros(0, np.intp)
+
+
+def state_size(cam_dim: int, kinds) -> int:
+    return int(cam_dim + FEATURE_DIMS[np.asarray(kinds, np.intp)].sum())
+
+
+# ---------------------------------------------------------------------------------------------
+# The covariance guard
+# ---------------------------------------------------------------------------------------------
+
 def _where(where: str) -> str:
     return f" after {where}" if where else ""
 
 
-def check_mean(x: np.ndarray, where: str = "") -> np.ndarray:
-    """Raise :class:`SlamNumericalError` if the state vector has NaN/Inf; return it."""
-    bad = np.flatnonzero(~np.isfinite(x))
-    if bad.size:
-        raise SlamNumericalError(f"state mean x has NaN/Inf{_where(where)} at indices "
-                                 f"{bad[:8].tolist()}{' ...' if bad.size > 8 else ''} "
-                                 f"({_describe_index(int(bad[0]))})")
-    return x
-
-
 #: Tile edge of _symmetric_and_finite: a tile read by rows and its mirror read by columns stay in
-#: cache together (numpy's ``P + P.T`` walks the transpose against the cache, several times
-#: slower than a copy at n ~ 900).
+#: cache together.
 _TILE = 32
 
 
 @compiled_kernel()
 def _symmetric_and_finite(P):
-    """Whether the square C-contiguous ``P`` is exactly symmetric with every entry finite (one
-    tiled pass over the upper triangle and its mirror, stopping after the first failing tile)."""
+    """Whether the square C-contiguous ``P`` is exactly symmetric with every entry finite."""
     n = P.shape[0]
     for i0 in range(0, n, _TILE):
         for j0 in range(i0, n, _TILE):
@@ -394,15 +118,26 @@ def _symmetric_and_finite(P):
     return True
 
 
-def check_covariance(P: np.ndarray, where: str = "", cfg: SlamConfig = DEFAULT_CONFIG) -> np.ndarray:
+def check_mean(x: np.ndarray, where: str = "", describe=None) -> np.ndarray:
+    """Raise :class:`SlamNumericalError` if the state vector has NaN/Inf; return it."""
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        what = describe(int(bad[0])) if describe else f"index {int(bad[0])}"
+        raise SlamNumericalError(f"state mean x has NaN/Inf{_where(where)} at indices "
+                                 f"{bad[:8].tolist()}{' ...' if bad.size > 8 else ''} ({what})")
+    return x
+
+
+def check_covariance(P: np.ndarray, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True,
+                     describe=None) -> np.ndarray:
     """The symmetric-PSD guard: return ``(P + P^T) / 2`` after checking it (``P`` itself when it
-    is already exactly symmetric, as the filter's steps keep it).
+    is already exactly symmetric).
 
     Raises :class:`SlamNumericalError` naming the problem if ``P`` is not square, has NaN/Inf,
-    has a negative variance on its diagonal, or (``cfg.check_psd``) has an eigenvalue below
-    ``-cfg.psd_rel_tol * max(diag P)`` (tested by a Cholesky factorisation of ``P + tol I``; the
-    message then reports the smallest eigenvalue).
+    has a negative variance, or (``check_psd``) an eigenvalue below
+    ``-psd_rel_tol * max(diag P)`` (tested by a Cholesky factorisation of ``P + tol I``).
     """
+    describe = describe or (lambda i: f"index {i}")
     P = np.asarray(P, dtype=float)
     if P.ndim != 2 or P.shape[0] != P.shape[1]:
         raise SlamNumericalError(f"covariance P{_where(where)} must be square, got shape {P.shape}")
@@ -411,38 +146,29 @@ def check_covariance(P: np.ndarray, where: str = "", cfg: SlamConfig = DEFAULT_C
         if not finite.all():
             i, j = np.argwhere(~finite)[0]
             raise SlamNumericalError(f"covariance P has NaN/Inf{_where(where)}, first at ({i}, {j}) "
-                                     f"({_describe_index(int(i))} / {_describe_index(int(j))})")
-        P = 0.5 * (P + P.T)
+                                     f"({describe(int(i))} / {describe(int(j))})")
+        P = np.ascontiguousarray(0.5 * (P + P.T))
     d = np.diag(P)
     scale = float(d.max()) if d.size else 0.0
-    tol = cfg.psd_rel_tol * max(scale, np.finfo(float).tiny)
+    tol = psd_rel_tol * max(scale, np.finfo(float).tiny)
     if d.size and d.min() < -tol:
         i = int(np.argmin(d))
         raise SlamNumericalError(f"covariance P has a negative variance P[{i},{i}] = {d[i]:.3g}"
-                                 f"{_where(where)} ({_describe_index(i)})")
-    if cfg.check_psd and d.size:
+                                 f"{_where(where)} ({describe(i)})")
+    if check_psd and d.size:
         Pt = P.copy()
         Pt.flat[::len(Pt) + 1] += tol
-        # LAPACK's Cholesky on the copy, in place: Pt is symmetric, so its C-order buffer read
-        # as Fortran order (Pt.T, no copy) is the same matrix. (Measured ~4x faster than
-        # np.linalg.cholesky at n = 313 with this environment's OpenBLAS builds.)
+        # LAPACK's Cholesky on the copy, in place (Pt is symmetric: its C buffer read as Fortran
+        # order is the same matrix).
         _, info = scipy.linalg.lapack.dpotrf(Pt.T, lower=1, overwrite_a=1, clean=0)
         if info < 0:
             raise ValueError(f"dpotrf: illegal argument {-info}")
-        if info > 0:   # a leading minor is not positive definite
+        if info > 0:
             lam = np.linalg.eigvalsh(P)
             raise SlamNumericalError(
                 f"covariance P is not positive semi-definite{_where(where)}: smallest eigenvalue "
-                f"{lam[0]:.3g} < -{tol:.3g} (psd_rel_tol {cfg.psd_rel_tol:g} x max variance "
-                f"{scale:.3g})")
+                f"{lam[0]:.3g} < -{tol:.3g} (psd_rel_tol {psd_rel_tol:g} x max variance {scale:.3g})")
     return P
-
-
-def _describe_index(i: int) -> str:
-    for name, sl in (("r", R_SLICE), ("q", Q_SLICE), ("v", V_SLICE), ("w", W_SLICE)):
-        if sl.start <= i < sl.stop:
-            return f"camera {name}"
-    return f"feature {(i - CAMERA_DIM) // FEATURE_DIM}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -451,36 +177,48 @@ def _describe_index(i: int) -> str:
 
 @dataclass
 class State:
-    """Mean ``x`` (n,) and full covariance ``P`` (n, n) of camera and map (layout above).
+    """Mean ``x`` (n,), covariance ``P`` (n, n), and the layout: ``cam_dim`` (13 or 19), each
+    feature's ``kinds`` (N,) and ``anchors`` (N, 3, 3); ``starts`` (N,) is derived.
 
-    Build with ``State(x, P)`` or :meth:`from_camera`; add and remove features with
-    :meth:`add_feature` and :meth:`remove_feature`. The arrays are owned (copied on
-    construction) and replaced, not resized in place, by the filter steps.
+    The arrays are owned (copied on construction) and replaced, not resized in place, by the
+    filter's steps.
     """
 
     x: np.ndarray
     P: np.ndarray
+    cam_dim: int = CAMERA_DIM
+    kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    anchors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
     def __post_init__(self):
+        self.cam_dim = _check_camera_dim(self.cam_dim)
         self.x = np.array(self.x, dtype=float).reshape(-1)
-        self.P = np.array(self.P, dtype=float)
-        n = len(self.x)
-        count_features(n)
+        self.P = np.ascontiguousarray(np.array(self.P, dtype=float))
+        self.kinds = np.array(self.kinds, dtype=np.intp).reshape(-1)
+        if len(self.anchors) == 0 and len(self.kinds):
+            self.anchors = np.tile(np.eye(3), (len(self.kinds), 1, 1))
+        self.anchors = np.ascontiguousarray(np.array(self.anchors, dtype=float).reshape(-1, 3, 3))
+        if len(self.anchors) != len(self.kinds):
+            raise ValueError(f"{len(self.kinds)} feature kinds but {len(self.anchors)} anchors")
+        if np.any((self.kinds < 0) | (self.kinds >= len(FEATURE_DIMS))):
+            raise ValueError(f"unknown feature kinds {sorted(set(self.kinds.tolist()))}")
+        n = state_size(self.cam_dim, self.kinds)
+        if len(self.x) != n:
+            raise ValueError(f"a state with a {self.cam_dim}-number camera block and features of kinds "
+                             f"{self.kinds.tolist()} has {n} numbers, got {len(self.x)}")
         if self.P.shape != (n, n):
-            raise ValueError(f"P must have shape ({n}, {n}) for a state of {n} numbers, got {self.P.shape}")
-        check_mean(self.x, "construction")
-        self.P = check_covariance(self.P, "construction", DEFAULT_CONFIG)
+            raise ValueError(f"P must have shape ({n}, {n}), got {self.P.shape}")
+        self.starts = feature_starts(self.cam_dim, self.kinds)
+        self.guard("construction")
 
     @classmethod
     def from_camera(cls, x_v, P_vv) -> "State":
-        """A state with no features: camera block (13,) and its (13, 13) covariance."""
+        """A state with no features: camera block (13 or 19,) and its covariance."""
         x_v = np.asarray(x_v, dtype=float).reshape(-1)
-        if x_v.shape != (CAMERA_DIM,):
-            raise ValueError(f"x_v must have {CAMERA_DIM} numbers (r, q wxyz, v, w), got {x_v.shape}")
-        return cls(x_v, P_vv)
+        return cls(x_v, P_vv, cam_dim=len(x_v))
 
     def copy(self) -> "State":
-        return State(self.x.copy(), self.P.copy())
+        return State(self.x.copy(), self.P.copy(), self.cam_dim, self.kinds.copy(), self.anchors.copy())
 
     # -- views --
     @property
@@ -489,12 +227,16 @@ class State:
 
     @property
     def n_features(self) -> int:
-        return (len(self.x) - CAMERA_DIM) // FEATURE_DIM
+        return len(self.kinds)
+
+    @property
+    def has_biases(self) -> bool:
+        return self.cam_dim == CAMERA_DIM_BIASED
 
     @property
     def x_v(self) -> np.ndarray:
-        """(13,) camera block (a view)."""
-        return self.x[CAMERA_SLICE]
+        """The camera block (a view)."""
+        return self.x[:self.cam_dim]
 
     @property
     def r(self) -> np.ndarray:
@@ -512,54 +254,164 @@ class State:
     def w(self) -> np.ndarray:
         return self.x[W_SLICE]
 
-    def feature(self, k: int) -> np.ndarray:
-        """(3,) world position of feature ``k`` (a view)."""
-        return self.x[feature_slice(self._check_k(k))]
+    @property
+    def b_g(self) -> np.ndarray:
+        """Gyro bias (3,) rad/s, zero without bias states."""
+        return self.x[BG_SLICE] if self.has_biases else np.zeros(3)
 
     @property
-    def features(self) -> np.ndarray:
-        """(N, 3) all feature positions (a view)."""
-        return self.x[CAMERA_DIM:].reshape(-1, FEATURE_DIM)
+    def b_a(self) -> np.ndarray:
+        """Accelerometer bias (3,) m/s^2, zero without bias states."""
+        return self.x[BA_SLICE] if self.has_biases else np.zeros(3)
+
+    def feature_slice(self, k: int) -> slice:
+        k = self._check_k(k)
+        s = int(self.starts[k])
+        return slice(s, s + int(FEATURE_DIMS[self.kinds[k]]))
+
+    def feature(self, k: int) -> np.ndarray:
+        """The parameters of feature ``k`` (a view; their meaning depends on its kind)."""
+        return self.x[self.feature_slice(k)]
 
     def _check_k(self, k) -> int:
         if not (0 <= int(k) < self.n_features):
             raise IndexError(f"feature {k} does not exist (the map has {self.n_features})")
         return int(k)
 
-    # -- map management --
-    def add_feature(self, y, P_yy, P_yx, cfg: SlamConfig = DEFAULT_CONFIG) -> int:
-        """Append a point feature and return its index ``k``.
+    def describe(self, i: int) -> str:
+        """What state index ``i`` is, for error messages."""
+        for name, sl in _CAMERA_NAMES:
+            if sl.start <= i < min(sl.stop, self.cam_dim):
+                return f"camera {name}"
+        k = int(np.searchsorted(self.starts, i, side="right")) - 1
+        return f"feature {k} ({FEATURE_NAMES[self.kinds[k]]})" if k >= 0 else f"index {i}"
 
-        y : (3,) world position, m. P_yy : (3, 3) its covariance. P_yx : (3, n) its
-        cross-covariance with the current state (camera and existing features), in state order.
-        The grown covariance is checked by the guard; on failure nothing changes.
+    # -- map management --
+    def add_feature(self, kind: int, y, P_yy, P_yx, anchor=None, check_psd: bool = False) -> int:
+        """Append a feature of ``kind`` and return its index ``k``.
+
+        y : (d,) its parameters; P_yy : (d, d) their covariance; P_yx : (d, n) the
+        cross-covariance with the current state; anchor : (3, 3) its constant rotation
+        (identity by default). The grown covariance is checked by the guard; on failure nothing
+        changes.
         """
+        return self.add_features([kind], y, P_yy, P_yx, None if anchor is None else [anchor], check_psd)[0]
+
+    def add_features(self, kinds, y, P_yy, P_yx, anchors=None, check_psd: bool = False) -> list[int]:
+        """Append features of ``kinds`` (m,) at once (one rebuild of ``P``) and return their
+        indices. y : (d,) their parameters concatenated; P_yy : (d, d) their joint covariance;
+        P_yx : (d, n) the cross-covariance with the current state; anchors : (m, 3, 3) or None
+        (identities). Checked by the guard; on failure nothing changes."""
+        kinds = [int(k) for k in kinds]
+        dims = [int(FEATURE_DIMS[k]) for k in kinds]
+        d = sum(dims)
         n = self.n
         y = np.asarray(y, dtype=float).reshape(-1)
         P_yy = np.asarray(P_yy, dtype=float)
         P_yx = np.asarray(P_yx, dtype=float)
-        if y.shape != (FEATURE_DIM,) or P_yy.shape != (3, 3) or P_yx.shape != (3, n):
-            raise ValueError(f"add_feature needs y (3,), P_yy (3, 3), P_yx (3, {n}); got "
-                             f"{y.shape}, {P_yy.shape}, {P_yx.shape}")
-        x_new = check_mean(np.concatenate([self.x, y]), "add_feature")
-        P_new = np.empty((n + 3, n + 3))
+        names = " + ".join(FEATURE_NAMES[k] for k in kinds)
+        if y.shape != (d,) or P_yy.shape != (d, d) or P_yx.shape != (d, n):
+            what = f"a {names} feature needs" if len(kinds) == 1 else f"new features ({names}) need"
+            raise ValueError(f"{what} y ({d},), P_yy ({d}, {d}), P_yx ({d}, {n}); "
+                             f"got {y.shape}, {P_yy.shape}, {P_yx.shape}")
+        first = self.n_features
+        offsets = n + np.concatenate([[0], np.cumsum(dims)[:-1]]) if dims else np.zeros(0)
+
+        def new_name(i: int) -> str:
+            j = int(np.searchsorted(offsets, i, side="right")) - 1
+            return f"feature {first + j} ({FEATURE_NAMES[kinds[j]]}), the new one"
+
+        if not np.isfinite(y).all():
+            bad = (n + np.flatnonzero(~np.isfinite(y))).tolist()
+            raise SlamNumericalError(f"state mean x has NaN/Inf after add_feature at indices {bad} "
+                                     f"({new_name(bad[0])})")
+        P_new = np.empty((n + d, n + d))
         P_new[:n, :n] = self.P
         P_new[n:, :n] = P_yx
         P_new[:n, n:] = P_yx.T
-        P_new[n:, n:] = P_yy
-        self.P = check_covariance(P_new, "add_feature", cfg)
-        self.x = x_new
-        return self.n_features - 1
+        P_new[n:, n:] = 0.5 * (P_yy + P_yy.T)
+        P_new = check_covariance(P_new, "add_feature", check_psd=check_psd,
+                                 describe=lambda i: self.describe(i) if i < n else new_name(i))
+        A = np.tile(np.eye(3), (len(kinds), 1, 1)) if anchors is None else np.asarray(anchors, float).reshape(-1, 3, 3)
+        self.x, self.P = np.concatenate([self.x, y]), P_new
+        self.kinds = np.concatenate([self.kinds, np.array(kinds, np.intp)])
+        self.anchors = np.concatenate([self.anchors, A])
+        self.starts = feature_starts(self.cam_dim, self.kinds)
+        return list(range(first, self.n_features))
+
+    def remove_features(self, ks) -> None:
+        """Delete the features ``ks``: their entries of ``x`` and rows and columns of ``P``. Later
+        features shift down."""
+        ks = sorted({self._check_k(k) for k in np.atleast_1d(ks)})
+        if not ks:
+            return
+        keep = np.ones(self.n, bool)
+        for k in ks:
+            keep[self.feature_slice(k)] = False
+        kept = np.setdiff1d(np.arange(self.n_features), ks)
+        self.x = self.x[keep]
+        self.P = np.ascontiguousarray(self.P[np.ix_(keep, keep)])
+        self.kinds = self.kinds[kept]
+        self.anchors = self.anchors[kept]
+        self.starts = feature_starts(self.cam_dim, self.kinds)
 
     def remove_feature(self, k: int) -> None:
-        """Delete feature ``k``: its 3 entries of ``x`` and 3 rows and columns of ``P``. Later
-        features shift down one index."""
-        keep = np.ones(self.n, bool)
-        keep[feature_slice(self._check_k(k))] = False
-        self.x = self.x[keep]
-        self.P = self.P[np.ix_(keep, keep)]
+        self.remove_features([k])
 
-    def guard(self, where: str = "", cfg: SlamConfig = DEFAULT_CONFIG) -> None:
-        """Run :func:`check_mean` and :func:`check_covariance` (symmetrising ``P`` in place)."""
-        check_mean(self.x, where)
-        self.P = check_covariance(self.P, where, cfg)
+    def convert_feature(self, k: int, kind: int, y_new, J) -> None:
+        """Replace feature ``k`` by a feature of another ``kind`` with parameters ``y_new`` =
+        f(y) and ``J`` = df/dy (d_new, d_old): ``P`` is transformed to first order (the feature's
+        rows become ``J P_y,:``, its block ``J P_yy J^T``). Its place in the order is kept."""
+        self.convert_features([k], kind, [y_new], [J])
+
+    def convert_features(self, ks, kind: int, ys_new, Js) -> None:
+        """:meth:`convert_feature` for several features at once (one rebuild of ``P``):
+        ``P <- T P T^T`` with ``T`` the identity except each converted feature's ``J``."""
+        ks = [self._check_k(k) for k in ks]
+        if not ks:
+            return
+        d_new = int(FEATURE_DIMS[kind])
+        kinds = self.kinds.copy()
+        for k in ks:
+            kinds[k] = kind
+        starts_new = feature_starts(self.cam_dim, kinds)
+        n_new = state_size(self.cam_dim, kinds)
+        conv = {}
+        for k, y, J in zip(ks, ys_new, Js):
+            sl = self.feature_slice(k)
+            J = np.asarray(J, float)
+            y = np.asarray(y, float).reshape(-1)
+            if J.shape != (d_new, sl.stop - sl.start) or y.shape != (d_new,):
+                raise ValueError(f"convert_features: J must be ({d_new}, {sl.stop - sl.start}) and y_new ({d_new},)")
+            if not (np.isfinite(y).all() and np.isfinite(J).all()):
+                raise SlamNumericalError(f"convert_features: feature {k}'s conversion is not finite")
+            conv[k] = (sl, slice(int(starts_new[k]), int(starts_new[k]) + d_new), y, J)
+        # The entries that only move: old index -> new index.
+        moved = np.ones(self.n, bool)
+        for sl, _, _, _ in conv.values():
+            moved[sl] = False
+        old_keep = np.flatnonzero(moved)
+        new_keep = np.ones(n_new, bool)
+        for _, ns, _, _ in conv.values():
+            new_keep[ns] = False
+        new_keep = np.flatnonzero(new_keep)
+        A = np.empty((n_new, self.n))                           # T P
+        A[new_keep] = self.P[old_keep]
+        for sl, ns, _, J in conv.values():
+            A[ns] = J @ self.P[sl]
+        P = np.empty((n_new, n_new))                            # (T P) T^T
+        P[:, new_keep] = A[:, old_keep]
+        for sl, ns, _, J in conv.values():
+            P[:, ns] = A[:, sl] @ J.T
+        for _, ns, _, _ in conv.values():                       # symmetric by construction, but
+            P[ns, :] = P[:, ns].T                               # written once, as the transpose
+        x = np.empty(n_new)
+        x[new_keep] = self.x[old_keep]
+        for _, ns, y, _ in conv.values():
+            x[ns] = y
+        self.x, self.P, self.kinds, self.starts = x, P, kinds, starts_new
+
+    def guard(self, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True) -> None:
+        """Run :func:`check_mean` and :func:`check_covariance` (symmetrising ``P``)."""
+        check_mean(self.x, where, self.describe)
+        self.P = check_covariance(self.P, where, psd_rel_tol, check_psd, self.describe)

@@ -49,7 +49,8 @@ from kinematics.outdir import output_folder
 from kinematics.transforms import nearest_rotation
 
 from . import images
-from ..sequence import ImuLog, Trajectory, open_sequence, write_trajectory
+from ..eval import rotation_errors_deg
+from ..sequence import ImuLog, open_sequence, write_trajectory
 
 # Why a frame was flagged (StepResult.reason / RotationResult.reason).
 OK = "ok"
@@ -597,31 +598,6 @@ def check_fovea(fovea, camera: CameraIntrinsics) -> tuple[int, int]:
                          f"with room to move; choose a smaller fovea, e.g. "
                          f"{camera.width // 2}x{camera.height // 2}")
     return fw, fh
-
-
-# ---------------------------------------------------------------------------------------------
-# Ground truth comparison
-# ---------------------------------------------------------------------------------------------
-
-def rotation_errors_deg(t: np.ndarray, R_prev_cur: np.ndarray, groundtruth: Trajectory) -> np.ndarray:
-    """Angle (degrees) of R_est^T R_gt per frame pair, R_gt = R_world_prev^T R_world_cur.
-
-    t : (N,) s of the frames; R_prev_cur : (N, 3, 3), row i relating frame i-1 to i (row 0 is
-    ignored). Returns (N - 1,) degrees; NaN where the ground truth does not cover both times.
-    """
-    t = np.asarray(t, float)
-    err = np.full(len(t) - 1, np.nan)
-    cover = (t >= groundtruth.t[0]) & (t <= groundtruth.t[-1])
-    if cover.sum() < 2:
-        return err
-    idx = np.flatnonzero(cover)
-    R_w = np.full((len(t), 3, 3), np.nan)
-    R_w[idx] = groundtruth.interpolate(t[idx]).R_world_cam()
-    R_gt = np.einsum("nji,njk->nik", R_w[:-1], R_w[1:])
-    ok = np.isfinite(R_gt).all(axis=(1, 2))
-    D = np.einsum("nji,njk->nik", R_prev_cur[1:][ok], R_gt[ok])
-    err[ok] = np.degrees(Rotation.from_matrix(D).magnitude())
-    return err
 
 
 # ---------------------------------------------------------------------------------------------

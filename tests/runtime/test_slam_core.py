@@ -1,161 +1,58 @@
-"""Tests for runtime.slam's core: state layout, motion and measurement models (Jacobians against
-central differences), EKF predict/update against a dense reference, feature initialisation, the
-covariance guard, and the filter's consistency (camera-position NEES) in simulation."""
+"""runtime.slam's core: quaternion maths, the state layout and its per-feature offset table
+(through additions, removals and conversions, against a dense reference), the covariance
+guard's messages, the motion model (Jacobians against central differences, the prediction
+against dense F P F^T + Q, constant velocities integrated exactly), and the measurement
+helpers' Jacobians."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
-from kinematics.camera import CameraIntrinsics, in_image, project
-from runtime.slam.filter import (
-    FeatureNotMeasurable,
-    add_point_feature,
-    innovation_covariances,
-    measurement_order,
-    update,
-    update_one,
-)
-from runtime.slam.measurement import (
-    h_and_jacobians,
-    h_and_jacobians_many,
-    init_point_from_depth,
-    innovation_covariance,
-    ray_from_pixel,
-)
+import slam_testing as st
+from kinematics.camera import project
+from runtime.slam.config import SlamConfig
+from runtime.slam.features import FEATURE_DIMS, INVERSE_DEPTH, POINT, inverse_depth
+from runtime.slam.filter import add_inverse_depth_feature, add_point_feature, convert_to_point
+from runtime.slam.measurement import init_point_from_depth, predict as predict_h, predict_points, ray_from_pixel
 from runtime.slam.motion import (
-    dfdn,
     f_and_dfdx,
     f_and_dfdx_dfdn,
     noise_covariance,
-    normalise_quaternion_jacobian,
+    normalise_quaternion,
     predict,
     process_noise,
 )
-from runtime.slam.state import (
-    Q_SLICE,
-    R_SLICE,
-    V_SLICE,
-    W_SLICE,
-    SlamConfig,
-    SlamNumericalError,
-    State,
-    check_covariance,
-    feature_slice,
-    quat_left_matrix,
+from runtime.slam.quaternion import (
+    dq_dtheta_right,
+    normalise_quaternion_jacobian,
+    quat_from_rotation,
     quat_multiply,
     quat_to_rotation,
     quat_to_rotvec,
+    rotation_derivatives,
     rotvec_to_quat,
     rotvec_to_quat_jacobian,
+)
+from runtime.slam.state import (
+    CAMERA_DIM,
+    CAMERA_DIM_BIASED,
+    Q_SLICE,
+    SlamNumericalError,
+    State,
+    check_covariance,
+    feature_starts,
     state_size,
 )
 
 DT = 1.0 / 30.0
-PINHOLE = CameraIntrinsics(width=640, height=480, fx=514.7, fy=514.7, cx=319.5, cy=239.5)
-CAMERAS = {
-    "brown": CameraIntrinsics(width=640, height=480, fx=500.0, fy=505.0, cx=322.0, cy=236.0,
-                              model="brown", k1=-0.25, k2=0.08, p1=1e-3, p2=-5e-4, k3=-0.01),
-    "fisheye": CameraIntrinsics(width=640, height=480, fx=300.0, fy=302.0, cx=318.0, cy=241.0,
-                                model="fisheye", k1=0.05, k2=-0.01, k3=0.003, k4=-0.001),
-    "radial-sqrt": CameraIntrinsics(width=640, height=480, fx=195.0, fy=195.0, cx=162.0, cy=125.0,
-                                    model="radial-sqrt", kd1=9e-7),
-}
+CFG = SlamConfig()
+CAMERAS = st.CAMERAS
+BOTH = [CAMERA_DIM, CAMERA_DIM_BIASED]
 
 
-# -- helpers -----------------------------------------------------------------------------------
-
-def random_quat(rng) -> np.ndarray:
-    """A random unit quaternion, w x y z."""
-    return Rotation.random(random_state=rng.integers(2**31)).as_quat()[[3, 0, 1, 2]]
-
-
-def to_scipy(q) -> Rotation:
-    return Rotation.from_quat(np.asarray(q)[[1, 2, 3, 0]])
-
-
-def random_camera(rng, w_scale: float = 1.0) -> np.ndarray:
-    return np.concatenate([rng.normal(0, 1, 3), random_quat(rng), rng.normal(0, 0.5, 3),
-                           rng.normal(0, w_scale, 3)])
-
-
-def fd_jacobian(f, x, h: float = 1e-6) -> np.ndarray:
-    """Central differences, one coordinate at a time; quaternions are perturbed in R^4 without
-    renormalising, as the analytic Jacobians are defined."""
-    x = np.asarray(x, dtype=float)
-    cols = []
-    for i in range(len(x)):
-        e = np.zeros_like(x)
-        e[i] = h
-        cols.append((np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * h))
-    return np.stack(cols, axis=-1)
-
-
-def assert_jacobian(J, J_fd, rtol: float = 1e-6, atol_scale: float = 1e-6) -> None:
-    """|J - J_fd| <= rtol |J_fd| + atol_scale * max|J_fd| element-wise (the 1e-6 scale)."""
-    J, J_fd = np.asarray(J), np.asarray(J_fd)
-    assert J.shape == J_fd.shape and np.isfinite(J).all()
-    tol = rtol * np.abs(J_fd) + atol_scale * max(np.abs(J_fd).max(), 1e-12)
-    assert (np.abs(J - J_fd) <= tol).all(), f"max error {np.abs(J - J_fd).max():.3g}"
-
-
-def tangent_basis(q) -> np.ndarray:
-    """(4, 3) dq/dtheta of q * exp(theta) at 0: orthogonal to q, columns of length 1/2."""
-    return quat_left_matrix(q)[:, 1:] / 2.0
-
-
-def camera_covariance(q, sig_r, sig_theta, sig_v, sig_w) -> np.ndarray:
-    """A (13, 13) camera covariance with an orientation error theta (local, rad) mapped into the
-    quaternion's tangent (so P has q's norm direction as its null direction, as in the filter)."""
-    P = np.zeros((13, 13))
-    P[R_SLICE, R_SLICE] = sig_r**2 * np.eye(3)
-    T = tangent_basis(q)
-    P[Q_SLICE, Q_SLICE] = sig_theta**2 * T @ T.T
-    P[V_SLICE, V_SLICE] = sig_v**2 * np.eye(3)
-    P[W_SLICE, W_SLICE] = sig_w**2 * np.eye(3)
-    return P
-
-
-def reduced_covariance(state: State) -> np.ndarray:
-    """P restricted to the complement of the quaternion's norm direction (n - 1 dims)."""
-    n = state.n
-    q = state.q
-    B = np.linalg.svd(np.eye(4) - np.outer(q, q))[0][:, :3]    # orthonormal basis of q-perp
-    T = np.zeros((n, n - 1))
-    T[:3, :3] = np.eye(3)
-    T[3:7, 3:6] = B
-    T[7:, 6:] = np.eye(n - 7)
-    return T.T @ state.P @ T
-
-
-def map_state(rng, n_features: int = 5) -> tuple[State, np.ndarray]:
-    """A camera looking along world +Z at random points 2-4 m ahead, with a random full
-    (correlated) PSD covariance of the right structure. Returns the state and the true points."""
-    q = rotvec_to_quat(rng.normal(0, 0.1, 3))
-    x_v = np.concatenate([rng.normal(0, 0.1, 3), q, rng.normal(0, 0.3, 3), rng.normal(0, 0.3, 3)])
-    Y = np.column_stack([rng.uniform(-1, 1, n_features), rng.uniform(-0.7, 0.7, n_features),
-                         rng.uniform(2, 4, n_features)])
-    n = state_size(n_features)
-    A = rng.normal(0, 0.02, (n, n))
-    # Make q's block tangent: the covariance a running filter has.
-    Tq = np.eye(n)
-    Tq[3:7, 3:7] = np.eye(4) - np.outer(q, q)
-    P = Tq @ (A @ A.T + 1e-4 * np.eye(n)) @ Tq.T
-    return State(np.concatenate([x_v, Y.reshape(-1)]), P), Y
-
-
-# -- quaternions and the layout ----------------------------------------------------------------
-
-def test_layout_helpers():
-    assert state_size(4) == 25
-    assert feature_slice(0) == slice(13, 16) and feature_slice(2) == slice(19, 22)
-    rng = np.random.default_rng(0)
-    s, _ = map_state(rng, 3)
-    assert s.n_features == 3 and np.array_equal(s.feature(1), s.x[16:19])
-    assert np.array_equal(s.x_v, s.x[:13]) and np.array_equal(s.q, s.x[3:7])
-
+# -- quaternions -------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 5e-4, 2e-3, 0.7, 3.0])
 def test_rotvec_to_quat_and_jacobian(angle):
@@ -163,420 +60,430 @@ def test_rotvec_to_quat_and_jacobian(angle):
     axis = rng.normal(size=3)
     theta = angle * axis / np.linalg.norm(axis)
     q, J = rotvec_to_quat_jacobian(theta)
-    assert np.allclose(to_scipy(q).as_matrix(), Rotation.from_rotvec(theta).as_matrix(), atol=1e-15)
+    assert np.allclose(st.to_scipy(q).as_matrix(), Rotation.from_rotvec(theta).as_matrix(), atol=1e-15)
     assert abs(np.linalg.norm(q) - 1) < 1e-15
-    J_fd = fd_jacobian(lambda t: rotvec_to_quat(t), theta, h=1e-6)
-    assert_jacobian(J, J_fd)
+    st.assert_jacobian(J, st.fd_jacobian(rotvec_to_quat, theta))
     if angle == 0.0:
         assert np.array_equal(J, np.vstack([np.zeros(3), 0.5 * np.eye(3)]))
-    if angle < np.pi:
-        assert np.allclose(quat_to_rotvec(q), theta, atol=1e-12)
+    assert np.allclose(quat_to_rotvec(q), theta, atol=1e-12)
 
 
 def test_quaternion_convention_matches_scipy():
     rng = np.random.default_rng(2)
-    q, p = random_quat(rng), random_quat(rng)
-    assert np.allclose(quat_to_rotation(q), to_scipy(q).as_matrix(), atol=1e-15)
-    # Hamilton product, p applied first: R(q * p) = R(q) R(p)
-    assert np.allclose(to_scipy(quat_multiply(q, p)).as_matrix(),
-                       (to_scipy(q) * to_scipy(p)).as_matrix(), atol=1e-15)
+    for _ in range(5):
+        q, p = st.random_quat(rng), st.random_quat(rng)
+        assert np.allclose(quat_to_rotation(q), st.to_scipy(q).as_matrix(), atol=1e-15)
+        # Hamilton product, p applied first: R(q * p) = R(q) R(p)
+        assert np.allclose(st.to_scipy(quat_multiply(q, p)).as_matrix(), (st.to_scipy(q) * st.to_scipy(p)).as_matrix(),
+                           atol=1e-15)
+        R = st.to_scipy(q).as_matrix()
+        assert np.allclose(quat_to_rotation(quat_from_rotation(R)), R, atol=1e-14)
 
 
-def test_normalise_quaternion_jacobian():
+def test_rotation_derivatives_and_normalisation_jacobian():
     rng = np.random.default_rng(3)
-    q = 1.3 * random_quat(rng) + rng.normal(0, 0.1, 4)
+    q = 1.3 * st.random_quat(rng) + rng.normal(0, 0.1, 4)      # off the unit sphere: the formula is on R^4
+    st.assert_jacobian(np.moveaxis(rotation_derivatives(q), 0, -1), st.fd_jacobian(quat_to_rotation, q))
     qn, J = normalise_quaternion_jacobian(q)
     assert abs(np.linalg.norm(qn) - 1) < 1e-15
-    assert_jacobian(J, fd_jacobian(lambda a: a / np.linalg.norm(a), q))
-    # At a unit quaternion the Jacobian projects out q itself.
+    st.assert_jacobian(J, st.fd_jacobian(lambda a: a / np.linalg.norm(a), q))
     _, J1 = normalise_quaternion_jacobian(qn)
-    assert np.allclose(J1 @ qn, 0, atol=1e-15)
+    assert np.allclose(J1 @ qn, 0, atol=1e-15)                # at |q| = 1 it projects out q itself
+    with pytest.raises(ValueError, match="cannot normalise"):
+        normalise_quaternion_jacobian(np.zeros(4))
+
+
+def test_dq_dtheta_right_is_the_small_rotation_in_the_camera_frame():
+    rng = np.random.default_rng(4)
+    q = st.random_quat(rng)
+    J_fd = st.fd_jacobian(lambda t: quat_multiply(q, rotvec_to_quat(t)), np.zeros(3))
+    st.assert_jacobian(dq_dtheta_right(q), J_fd)
+
+
+# -- the layout and the offset table -----------------------------------------------------------
+
+def test_layout_of_a_mixed_state():
+    kinds = np.array([INVERSE_DEPTH, POINT, POINT, INVERSE_DEPTH, POINT])
+    for cd in BOTH:
+        starts = feature_starts(cd, kinds)
+        assert starts.tolist() == [cd, cd + 6, cd + 9, cd + 12, cd + 18]
+        assert state_size(cd, kinds) == cd + 21
+    assert feature_starts(CAMERA_DIM, []).tolist() == [] and state_size(CAMERA_DIM, []) == 13
+    rng = np.random.default_rng(5)
+    x = np.r_[st.random_camera(rng, cam_dim=19), np.arange(21.0)]
+    s = State(x, np.eye(40) * 1e-2, CAMERA_DIM_BIASED, kinds)
+    assert s.has_biases and s.n_features == 5 and s.n == 40
+    assert np.array_equal(s.feature(0), np.arange(6.0)) and np.array_equal(s.feature(2), [9.0, 10.0, 11.0])
+    assert np.array_equal(s.feature(4), [18.0, 19.0, 20.0])
+    assert np.array_equal(s.b_g, x[13:16]) and np.array_equal(s.b_a, x[16:19])
+    assert s.describe(14) == "camera b_g" and s.describe(17) == "camera b_a" and s.describe(4) == "camera q"
+    assert s.describe(19) == "feature 0 (inverse-depth)" and s.describe(29) == "feature 2 (point)"
+    assert s.describe(39) == "feature 4 (point)"
+    s13 = State(np.r_[x[:13], np.arange(21.0)], np.eye(34) * 1e-2, CAMERA_DIM, kinds)
+    assert not s13.has_biases and np.array_equal(s13.b_g, np.zeros(3)) and s13.describe(13) == "feature 0 (inverse-depth)"
+    with pytest.raises(IndexError, match="feature 5 does not exist"):
+        s.feature(5)
+
+
+def test_state_refuses_inconsistent_layouts():
+    x = np.r_[0, 0, 0, 1.0, 0, 0, 0, np.zeros(6)]
+    with pytest.raises(ValueError, match="13 numbers, or 19"):
+        State(np.r_[x, 0.0], np.eye(14), cam_dim=14)
+    with pytest.raises(ValueError, match="has 16 numbers, got 15"):
+        State(np.r_[x, 0, 0], np.eye(15), CAMERA_DIM, [POINT])
+    with pytest.raises(ValueError, match="P must have shape"):
+        State(np.r_[x, 0, 0, 0], np.eye(15), CAMERA_DIM, [POINT])
+    with pytest.raises(ValueError, match="unknown feature kinds"):
+        State(np.r_[x, 0, 0, 0], np.eye(16), CAMERA_DIM, [7])
+
+
+class DenseMaster:
+    """An independent record of a state under map management: every coordinate ever added
+    keeps its place in one dense (x, P); removals only mark features dead, a conversion appends
+    the new coordinates ``y' = f(y)`` with ``P' = T P T^T`` on the whole master and marks the old
+    ones dead. The live state must equal the master restricted to the live features in order."""
+
+    def __init__(self, state: State):
+        self.x = state.x.copy()
+        self.P = state.P.copy()
+        self.cam = list(range(state.cam_dim))
+        self.live: list[tuple[int, list[int]]] = []          # (kind, master indices) in state order
+
+    def live_index(self) -> np.ndarray:
+        return np.array(self.cam + [i for _, idx in self.live for i in idx], int)
+
+    def add(self, kind, y, P_yy, P_yx):
+        n0 = len(self.x)
+        d = len(y)
+        live = self.live_index()
+        P = np.zeros((n0 + d, n0 + d))
+        P[:n0, :n0] = self.P
+        P[n0:, live] = P_yx
+        P[live, n0:] = P_yx.T
+        P[n0:, n0:] = P_yy
+        self.x, self.P = np.r_[self.x, y], P
+        self.live.append((kind, list(range(n0, n0 + d))))
+
+    def remove(self, ks):
+        self.live = [f for k, f in enumerate(self.live) if k not in set(ks)]
+
+    def convert(self, k, kind, y_new, J):
+        _, idx = self.live[k]
+        n0 = len(self.x)
+        d = len(y_new)
+        T = np.zeros((n0 + d, n0))
+        T[:n0, :n0] = np.eye(n0)
+        T[n0:, idx] = J
+        self.x, self.P = np.r_[self.x, y_new], T @ self.P @ T.T
+        self.live[k] = (kind, list(range(n0, n0 + d)))
+
+    def check(self, state: State):
+        live = self.live_index()
+        assert state.kinds.tolist() == [kd for kd, _ in self.live]
+        assert state.n == len(live)
+        np.testing.assert_allclose(state.x, self.x[live], rtol=0, atol=1e-12)
+        st.assert_close(state.P, self.P[np.ix_(live, live)], 1e-12)
+        for k, (kd, idx) in enumerate(self.live):
+            np.testing.assert_allclose(state.feature(k), self.x[idx], rtol=0, atol=1e-12)
+            assert state.feature_slice(k).stop - state.feature_slice(k).start == FEATURE_DIMS[kd]
+
+
+@pytest.mark.parametrize("cam_dim", BOTH)
+def test_offset_table_through_additions_removals_and_conversions(cam_dim):
+    """Random map management on a mixed state: after every addition (either kind), removal (of
+    one or several features, anywhere) and conversion (State.convert_feature and
+    filter.convert_to_point), every feature's parameters and every covariance block are those
+    of the dense master record."""
+    CAMERAS["pinhole"]
+    rng = np.random.default_rng(6 + cam_dim)
+    x_v = st.random_camera(rng, cam_dim=cam_dim)
+    s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1, cam_dim))
+    ref = DenseMaster(s)
+    ops = {"add": 0, "remove": 0, "convert": 0}
+    mixed = 0
+    for step in range(60):
+        op = rng.choice(["add", "add", "remove", "convert"]) if s.n_features > 2 else "add"
+        if op == "add":
+            kind = int(rng.integers(2))
+            d = int(FEATURE_DIMS[kind])
+            B = 0.1 * rng.normal(size=(d, s.n))              # y = B x + noise: a valid joint covariance
+            if kind == INVERSE_DEPTH:
+                y = np.r_[s.r + rng.normal(0, 0.05, 3), rng.uniform(-0.5, 0.5, 2), rng.uniform(0.2, 2.0)]
+            else:
+                y = s.r + rng.normal(0, 2.0, 3)
+            P_yy, P_yx = B @ s.P @ B.T + 1e-3 * np.eye(d), B @ s.P
+            k = s.add_feature(kind, y, P_yy, P_yx, anchor=st.to_scipy(st.random_quat(rng)).as_matrix(), check_psd=True)
+            assert k == s.n_features - 1
+            ref.add(kind, y, P_yy, P_yx)
+        elif op == "remove":
+            ks = rng.choice(s.n_features, size=int(rng.integers(1, 3)), replace=False).tolist()
+            s.remove_features(ks)
+            ref.remove(ks)
+        else:
+            ids = np.flatnonzero(s.kinds == INVERSE_DEPTH)
+            if not len(ids):
+                continue
+            k = int(rng.choice(ids))
+            p, J = inverse_depth.to_point(s.feature(k), s.anchors[k])
+            if step % 2:
+                convert_to_point(s, k)
+            else:
+                s.convert_feature(k, POINT, p, J)
+            ref.convert(k, POINT, p, J)
+        ops[op] += 1
+        ref.check(s)
+        assert s.starts.tolist() == feature_starts(cam_dim, s.kinds).tolist()
+        assert len(s.anchors) == s.n_features
+        mixed += set(s.kinds.tolist()) == {POINT, INVERSE_DEPTH}
+    assert min(ops.values()) >= 5 and mixed >= 20, (ops, mixed)
+    s.guard("end", check_psd=True)
+
+
+def test_conversion_keeps_the_anchor_order_and_refuses_bad_shapes():
+    cam = CAMERAS["brown"]
+    rng = np.random.default_rng(7)
+    x_v = st.random_camera(rng)
+    s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1))
+    for uv in ([200.0, 150.0], [400.0, 300.0], [320.0, 100.0]):
+        add_inverse_depth_feature(s, uv, cam, 0.8, 0.3, 1.0)
+    anchors = s.anchors.copy()
+    convert_to_point(s, 1)
+    assert s.kinds.tolist() == [INVERSE_DEPTH, POINT, INVERSE_DEPTH]
+    assert np.array_equal(s.anchors[0], anchors[0]) and np.array_equal(s.anchors[2], anchors[2])
+    with pytest.raises(ValueError, match="not an inverse-depth one"):
+        convert_to_point(s, 1)
+    with pytest.raises(ValueError, match="J must be"):
+        s.convert_feature(0, POINT, np.zeros(3), np.zeros((3, 3)))
+
+
+# -- the guard ---------------------------------------------------------------------------------
+
+def guarded_state(rng) -> State:
+    cam = CAMERAS["pinhole"]
+    x_v = st.random_camera(rng, cam_dim=CAMERA_DIM_BIASED)
+    s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1, CAMERA_DIM_BIASED))
+    add_inverse_depth_feature(s, [300.0, 200.0], cam, 1.0, 0.5, 1.0)
+    add_point_feature(s, [100.0, 100.0], 2.0, 0.01, 1.0, cam)
+    return s
+
+
+def test_guard_names_the_problem_and_leaves_the_state_unchanged():
+    rng = np.random.default_rng(8)
+    s = guarded_state(rng)
+    x0, P0, kinds0 = s.x.copy(), s.P.copy(), s.kinds.copy()
+    with pytest.raises(SlamNumericalError, match=r"x has NaN/Inf after add_feature at indices \[28\]"):
+        s.add_feature(POINT, [np.nan, 0, 1], np.eye(3), np.zeros((3, s.n)))
+    with pytest.raises(SlamNumericalError, match=r"P has NaN/Inf after add_feature, first at \(28, 28\)"):
+        s.add_feature(POINT, [0, 0, 1], np.full((3, 3), np.inf), np.zeros((3, s.n)))
+    with pytest.raises(SlamNumericalError, match="negative variance"):
+        s.add_feature(POINT, [0, 0, 1], -np.eye(3), np.zeros((3, s.n)))
+    with pytest.raises(SlamNumericalError, match="not positive semi-definite"):
+        s.add_feature(POINT, [0, 0, 1], np.eye(3), np.full((3, s.n), 10.0), check_psd=True)   # |corr| > 1
+    with pytest.raises(ValueError, match=r"inverse-depth feature needs y \(6,\)"):
+        s.add_feature(INVERSE_DEPTH, [0, 0, 1], np.eye(3), np.zeros((3, s.n)))
+    assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0) and np.array_equal(s.kinds, kinds0)
+    with pytest.raises(SlamNumericalError, match=r"x has NaN/Inf after construction.*camera q"):
+        State(np.r_[np.zeros(3), np.nan, 0, 0, 0, np.zeros(6)], np.eye(13))
+    with pytest.raises(SlamNumericalError, match=r"P has NaN/Inf.*camera b_a"):
+        bad = s.P.copy()
+        bad[17, 17] = np.nan
+        State(s.x, bad, s.cam_dim, s.kinds, s.anchors)
+
+
+def test_guard_names_the_new_feature():
+    s = guarded_state(np.random.default_rng(8))
+    with pytest.raises(SlamNumericalError, match=r"NaN/Inf.*feature 2"):
+        s.add_feature(POINT, [np.nan, 0, 1], np.eye(3), np.zeros((3, s.n)))
+    with pytest.raises(SlamNumericalError, match=r"NaN/Inf.*feature 2"):
+        s.add_feature(POINT, [0, 0, 1], np.full((3, 3), np.inf), np.zeros((3, s.n)))
+
+
+def test_check_covariance():
+    P = np.array([[1.0, 0.5], [0.5 + 1e-12, 2.0]])
+    out = check_covariance(P)
+    assert np.array_equal(out, out.T) and out[0, 1] == 0.5 * (1.0 + 1e-12)
+    sym = np.array([[2.0, 0.3], [0.3, 1.0]])
+    assert check_covariance(sym) is sym                    # nothing to symmetrise
+    P = np.eye(4)
+    P[1, 2] = P[2, 1] = np.inf
+    with pytest.raises(SlamNumericalError, match=r"NaN/Inf.*first at \(1, 2\)"):
+        check_covariance(P)
+    with pytest.raises(SlamNumericalError, match="must be square"):
+        check_covariance(np.eye(3)[:2])
+    # The quaternion's norm direction is an exact null direction: rounding below it is accepted,
+    # a real negative eigenvalue is not.
+    q = st.random_quat(np.random.default_rng(9))
+    Pq = np.eye(4) - np.outer(q, q)
+    check_covariance(Pq - 1e-13 * np.outer(q, q))
+    with pytest.raises(SlamNumericalError, match=r"smallest eigenvalue -0.001"):
+        check_covariance(Pq - 1e-3 * np.outer(q, q))
+    check_covariance(Pq - 1e-3 * np.outer(q, q), check_psd=False)
 
 
 # -- motion model ------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("cam_dim", BOTH)
 @pytest.mark.parametrize("w_scale", [0.0, 1e-7, 1.0, 20.0])
-def test_motion_jacobians_F_and_G(w_scale):
-    rng = np.random.default_rng(4)
+def test_motion_jacobians_F_and_G(w_scale, cam_dim):
+    rng = np.random.default_rng(10)
     for _ in range(3):
-        x_v = random_camera(rng, w_scale)
+        x_v = st.random_camera(rng, w_scale, cam_dim)
         x_v[Q_SLICE] *= 1.1   # F is defined on R^4; check it off the unit sphere too
         for n in (np.zeros(6), rng.normal(0, 0.2, 6)):
             x_new, F, G = f_and_dfdx_dfdn(x_v, DT, n)
-            assert_jacobian(F, fd_jacobian(lambda a: f_and_dfdx_dfdn(a, DT, n)[0], x_v))
-            assert_jacobian(G, fd_jacobian(lambda b: f_and_dfdx_dfdn(x_v, DT, b)[0], n))
+            assert F.shape == (cam_dim, cam_dim) and G.shape == (cam_dim, 6)
+            st.assert_jacobian(F, st.fd_jacobian(lambda a: f_and_dfdx_dfdn(a, DT, n)[0], x_v))
+            st.assert_jacobian(G, st.fd_jacobian(lambda b: f_and_dfdx_dfdn(x_v, DT, b)[0], n))
+            assert np.array_equal(x_new[13:], x_v[13:])        # the biases do not move in the prediction
         x0, F0 = f_and_dfdx(x_v, DT)
         assert np.array_equal(x0, f_and_dfdx_dfdn(x_v, DT)[0]) and np.array_equal(F0, f_and_dfdx_dfdn(x_v, DT)[1])
-        assert np.array_equal(dfdn(x_v, DT), f_and_dfdx_dfdn(x_v, DT)[2])
 
 
-def test_process_noise_is_G_Pn_Gt():
-    rng = np.random.default_rng(5)
-    cfg = SlamConfig(sigma_a=2.0, sigma_alpha=3.0)
-    x_v = random_camera(rng)
-    G = dfdn(x_v, DT)
+@pytest.mark.parametrize("cam_dim", BOTH)
+def test_process_noise_is_G_Pn_Gt_plus_the_bias_walks(cam_dim):
+    rng = np.random.default_rng(11)
+    cfg = SlamConfig(sigma_a=2.0, sigma_alpha=3.0, gyro_bias_walk=1e-3, accel_bias_walk=2e-2)
+    x_v = st.random_camera(rng, cam_dim=cam_dim)
+    G = f_and_dfdx_dfdn(x_v, DT)[2]
     Pn = noise_covariance(DT, cfg)
     assert np.allclose(np.diag(Pn), [(2 * DT) ** 2] * 3 + [(3 * DT) ** 2] * 3)
-    assert np.allclose(process_noise(x_v, DT, cfg), G @ Pn @ G.T)
+    walks = np.zeros((cam_dim, cam_dim))
+    if cam_dim == CAMERA_DIM_BIASED:
+        walks[13:16, 13:16] = np.eye(3) * 1e-6 * DT
+        walks[16:19, 16:19] = np.eye(3) * 4e-4 * DT
+    np.testing.assert_allclose(process_noise(x_v, DT, cfg), G @ Pn @ G.T + walks, rtol=1e-12, atol=1e-18)
 
 
-def test_predict_with_zero_velocities_keeps_mean_and_adds_Q():
-    rng = np.random.default_rng(6)
-    s, _ = map_state(rng, 4)
-    s.x[V_SLICE] = 0.0
-    s.x[W_SLICE] = 0.0
-    # Zero the velocity rows/columns, so that F P F^T = P and the growth is exactly Q.
-    P = s.P.copy()
-    P[7:13, :] = 0.0
-    P[:, 7:13] = 0.0
-    s = State(s.x, P)
-    x0, P0 = s.x.copy(), s.P.copy()
-    cfg = SlamConfig()
-    predict(s, DT, cfg)
-    assert np.allclose(s.x, x0, atol=1e-15, rtol=0)
-    expected = P0.copy()
-    expected[:13, :13] += process_noise(x0[:13], DT, cfg)
-    assert np.allclose(s.P, expected, atol=1e-15, rtol=1e-12)
+def mixed_state(rng, cam_dim=CAMERA_DIM, n_points=4, n_inverse=3, cam=None) -> State:
+    """A camera and features of both kinds in front of it, with a random full covariance."""
+    cam = cam or CAMERAS["pinhole"]
+    x_v = st.random_camera(rng, 0.5, cam_dim)
+    s = State.from_camera(x_v, np.eye(cam_dim) * 1e-4)
+    for i in range(n_points + n_inverse):
+        uv = rng.uniform([0.15 * cam.width, 0.15 * cam.height], [0.85 * cam.width, 0.85 * cam.height])
+        if i < n_inverse:
+            k = add_inverse_depth_feature(s, uv, cam, 1.0, 0.5, 1.0)
+            s.x[s.feature_slice(k)][5] = rng.uniform(0.3, 1.5)
+        else:
+            add_point_feature(s, uv, rng.uniform(0.7, 3.0), 0.01, 1.0, cam)
+    s.P = st.random_covariance(rng, s.n, s.q)
+    return s
 
 
-def test_predict_propagates_cross_covariances_and_leaves_features():
-    rng = np.random.default_rng(7)
-    s, _ = map_state(rng, 3)
-    x0, P0 = s.x.copy(), s.P.copy()
-    cfg = SlamConfig()
-    predict(s, DT, cfg)
-    x_new, F = f_and_dfdx(x0[:13], DT)
-    Q = process_noise(x0[:13], DT, cfg)
+def dense_prediction(s: State, dt, cfg):
+    """The prediction with dense matrices over the whole state."""
+    cd = s.cam_dim
+    x_new, F, G = f_and_dfdx_dfdn(s.x[:cd], dt)
+    Fx = np.eye(s.n)
+    Fx[:cd, :cd] = F
+    Q = np.zeros((s.n, s.n))
+    Q[:cd, :cd] = process_noise(s.x[:cd], dt, cfg)
+    P = Fx @ s.P @ Fx.T + Q
     qn, J = normalise_quaternion_jacobian(x_new[Q_SLICE])
-    T = np.eye(13)
-    T[3:7, 3:7] = J
-    assert np.allclose(s.x[:13], np.r_[x_new[:3], qn, x_new[7:]])
-    assert np.allclose(s.P[:13, :13], T @ (F @ P0[:13, :13] @ F.T + Q) @ T.T, atol=1e-15)
-    assert np.allclose(s.P[:13, 13:], T @ F @ P0[:13, 13:], atol=1e-15)
-    assert np.array_equal(s.P[13:, 13:], P0[13:, 13:])
-    assert np.array_equal(s.x[13:], x0[13:])
+    T = np.eye(s.n)
+    T[Q_SLICE, Q_SLICE] = J
+    x = s.x.copy()
+    x[:cd] = x_new
+    x[Q_SLICE] = qn
+    return x, T @ P @ T.T
+
+
+@pytest.mark.parametrize("cam_dim", BOTH)
+def test_predict_equals_the_dense_prediction_and_leaves_the_features(cam_dim):
+    rng = np.random.default_rng(12)
+    s = mixed_state(rng, cam_dim)
+    x0, P0 = s.x.copy(), s.P.copy()
+    x_ref, P_ref = dense_prediction(s, DT, CFG)
+    predict(s, DT, CFG)
+    st.assert_close(s.x, x_ref, 1e-14)
+    st.assert_close(s.P, P_ref, 1e-12)
+    assert np.array_equal(s.x[cam_dim:], x0[cam_dim:]) and np.array_equal(s.P[cam_dim:, cam_dim:], P0[cam_dim:, cam_dim:])
+    assert np.array_equal(s.P, s.P.T)          # written exactly symmetric
+    assert abs(np.linalg.norm(s.q) - 1) < 1e-15
+    # A lost track's noise gain scales the impulses' variance by its square.
+    s1, s2 = State(x0, P0, cam_dim, s.kinds, s.anchors), State(x0, P0, cam_dim, s.kinds, s.anchors)
+    predict(s1, DT, CFG, noise_gain=2.0)
+    predict(s2, DT, SlamConfig(sigma_a=2 * CFG.sigma_a, sigma_alpha=2 * CFG.sigma_alpha))
+    st.assert_close(s1.P[:13, :13], s2.P[:13, :13], 1e-12)
 
 
 def test_predict_integrates_constant_velocities_exactly():
-    rng = np.random.default_rng(8)
-    r0, q0 = rng.normal(size=3), random_quat(rng)
-    v, w = np.array([0.3, -0.2, 1.1]), np.array([0.4, 1.5, -0.7])   # w in the camera frame
-    s = State.from_camera(np.r_[r0, q0, v, w], np.zeros((13, 13)))
-    steps = 90
-    for _ in range(steps):
-        predict(s, DT)
-    t = steps * DT
-    assert np.allclose(s.r, r0 + v * t, atol=1e-13)
-    # Constant body-frame rate about a fixed axis: R(t) = R0 Rot(w t).
-    R_expected = to_scipy(q0).as_matrix() @ Rotation.from_rotvec(w * t).as_matrix()
-    assert np.allclose(quat_to_rotation(s.q), R_expected, atol=1e-13)
-    assert np.allclose(s.v, v) and np.allclose(s.w, w)
+    rng = np.random.default_rng(13)
+    for cam_dim in BOTH:
+        r0, q0 = rng.normal(size=3), st.random_quat(rng)
+        v, w = np.array([0.3, -0.2, 1.1]), np.array([0.4, 1.5, -0.7])   # w in the camera frame
+        x_v = np.r_[r0, q0, v, w, np.full(cam_dim - 13, 0.01)]
+        s = State.from_camera(x_v, np.zeros((cam_dim, cam_dim)))
+        steps = 90
+        for _ in range(steps):
+            predict(s, DT, CFG)
+        t = steps * DT
+        assert np.allclose(s.r, r0 + v * t, atol=1e-13)
+        # Constant body-frame rate about a fixed axis: R(t) = R0 Rot(w t).
+        R_expected = st.to_scipy(q0).as_matrix() @ Rotation.from_rotvec(w * t).as_matrix()
+        assert np.allclose(quat_to_rotation(s.q), R_expected, atol=1e-13)
+        assert np.allclose(s.v, v) and np.allclose(s.w, w) and np.array_equal(s.x[13:], x_v[13:])
 
 
-def test_predict_rejects_bad_dt():
+def test_predict_rejects_bad_dt_and_normalise_quaternion():
     s = State.from_camera(np.r_[np.zeros(3), 1, 0, 0, 0, np.zeros(6)], np.eye(13) * 1e-4)
     for dt in (-0.1, np.nan, np.inf):
         with pytest.raises(ValueError, match="dt"):
-            predict(s, dt)
+            predict(s, dt, CFG)
+    s.x[Q_SLICE] = 2.0
+    normalise_quaternion(s)
+    assert np.allclose(s.q, 0.5)
 
 
-# -- measurement model -------------------------------------------------------------------------
-
-def visible_points(cam, x_v, rng, n=6, depth=(1.0, 4.0), margin=30.0) -> np.ndarray:
-    """World points that project inside the image (with margin) of the camera x_v."""
-    xs = rng.uniform(margin, cam.width - margin, n)
-    ys = rng.uniform(margin, cam.height - margin, n)
-    out = []
-    for u, v in zip(xs, ys):
-        lam = rng.uniform(*depth)
-        out.append(init_point_from_depth(x_v, [u, v], lam, cam)[0])
-    return np.array(out)
-
-
-@pytest.mark.parametrize("model", sorted(CAMERAS))
-def test_measurement_jacobians(model):
-    cam = CAMERAS[model]
-    rng = np.random.default_rng(9)
-    for _ in range(4):
-        x_v = random_camera(rng)
-        Y = visible_points(cam, x_v, rng)
-        for y in Y:
-            uv, H_x, H_y, valid = h_and_jacobians(x_v, y, cam)
-            assert valid and np.isfinite(uv).all()
-            assert_jacobian(H_x, fd_jacobian(lambda a: h_and_jacobians(a, y, cam).uv, x_v))
-            assert_jacobian(H_y, fd_jacobian(lambda b: h_and_jacobians(x_v, b, cam).uv, y))
-            assert np.array_equal(H_x[:, 7:], np.zeros((2, 6)))
-            # The projection ignores the quaternion's scale: H_q q = 0.
-            assert np.allclose(H_x[:, Q_SLICE] @ x_v[Q_SLICE], 0, atol=1e-9 * np.abs(H_x).max())
-        # The vectorised form agrees, and with kinematics.camera.project.
-        uv_m, Hx_m, Hy_m, valid_m = h_and_jacobians_many(x_v, Y, cam)
-        R_wc = quat_to_rotation(x_v[Q_SLICE])
-        assert valid_m.all() and np.allclose(uv_m, project(cam, (Y - x_v[:3]) @ R_wc), atol=1e-9)
-        assert np.allclose(Hx_m[0], h_and_jacobians(x_v, Y[0], cam).H_x)
-
-
-def test_points_behind_the_camera_are_nan_and_flagged():
-    x_v = np.r_[np.zeros(3), 1, 0, 0, 0, np.zeros(6)]
-    for y in ([0.1, 0.2, -1.0], [0.1, 0.2, 0.0]):
-        uv, H_x, H_y, valid = h_and_jacobians(x_v, y, PINHOLE)
-        assert not valid and np.isnan(uv).all() and np.isnan(H_x).all() and np.isnan(H_y).all()
-    assert h_and_jacobians(x_v, [0.1, 0.2, 1.0], PINHOLE).valid
-
-
-def test_innovation_covariance_dense():
-    rng = np.random.default_rng(10)
-    A = rng.normal(size=(5, 5))
-    P = A @ A.T
-    H = rng.normal(size=(2, 5))
-    S = innovation_covariance(P, H, np.eye(2))
-    assert np.allclose(S, H @ P @ H.T + np.eye(2)) and np.array_equal(S, S.T)
-
+# -- measurement helpers -----------------------------------------------------------------------
 
 @pytest.mark.parametrize("model", sorted(CAMERAS))
 def test_ray_from_pixel_and_init_point_jacobians(model):
     cam = CAMERAS[model]
-    rng = np.random.default_rng(11)
-    for _ in range(4):
-        x_v = random_camera(rng)
+    rng = np.random.default_rng(14)
+    for cam_dim in BOTH:
+        x_v = st.random_camera(rng, cam_dim=cam_dim)
         uv = np.array([rng.uniform(20, cam.width - 20), rng.uniform(20, cam.height - 20)])
         lam = rng.uniform(0.5, 5.0)
         origin, d, dd_dx, dd_duv = ray_from_pixel(x_v, uv, cam)
         assert np.allclose(origin, x_v[:3]) and abs(np.linalg.norm(d) - 1) < 1e-12
-        assert_jacobian(dd_dx, fd_jacobian(lambda a: ray_from_pixel(a, uv, cam)[1], x_v))
-        assert_jacobian(dd_duv, fd_jacobian(lambda b: ray_from_pixel(x_v, b, cam)[1], uv, h=1e-4))
+        assert dd_dx.shape == (3, cam_dim)
+        st.assert_jacobian(dd_dx, st.fd_jacobian(lambda a: ray_from_pixel(a, uv, cam)[1], x_v))
+        st.assert_jacobian(dd_duv, st.fd_jacobian(lambda b: ray_from_pixel(x_v, b, cam)[1], uv, h=1e-4), rtol=1e-5)
 
         y, dy_dx, dy_duv, dy_dd = init_point_from_depth(x_v, uv, lam, cam)
         assert np.allclose(y, origin + lam * d)
         # The point projects back to the pixel, at distance lam from the optical centre.
-        assert np.allclose(h_and_jacobians(x_v, y, cam).uv, uv, atol=1e-7)
+        assert np.allclose(project(cam, ((y - x_v[:3]) @ quat_to_rotation(x_v[Q_SLICE]))[None])[0], uv, atol=1e-7)
         assert np.isclose(np.linalg.norm(y - x_v[:3]), lam)
-        assert_jacobian(dy_dx, fd_jacobian(lambda a: init_point_from_depth(a, uv, lam, cam)[0], x_v))
-        assert_jacobian(dy_duv, fd_jacobian(lambda b: init_point_from_depth(x_v, b, lam, cam)[0], uv, h=1e-4))
-        assert_jacobian(dy_dd, fd_jacobian(lambda c: init_point_from_depth(x_v, uv, c[0], cam)[0],
-                                           np.array([lam]))[:, 0])
-
-
-# -- state container and guard -----------------------------------------------------------------
-
-def test_add_and_remove_feature():
-    rng = np.random.default_rng(12)
-    s, _ = map_state(rng, 3)
-    x0, P0 = s.x.copy(), s.P.copy()
-    B = 0.1 * rng.normal(size=(3, s.n))            # y = B x + noise: a valid joint covariance
-    P_yx = B @ s.P
-    k = s.add_feature([1.0, 2.0, 3.0], B @ s.P @ B.T + 0.01 * np.eye(3), P_yx)
-    assert k == 3 and s.n_features == 4 and np.array_equal(s.feature(3), [1, 2, 3])
-    assert np.array_equal(s.P[:-3, -3:], P_yx.T) and np.array_equal(s.P[-3:, :-3], P_yx)
-    s.remove_feature(3)
-    assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0)
-    # Removing a middle feature shifts the later ones down.
-    s.remove_feature(1)
-    keep = np.r_[0:16, 19:22]
-    assert np.array_equal(s.x, x0[keep]) and np.array_equal(s.P, P0[np.ix_(keep, keep)])
-    with pytest.raises(IndexError, match="feature 5"):
-        s.remove_feature(5)
-
-
-def test_guard_names_the_problem_and_leaves_state_unchanged():
-    rng = np.random.default_rng(13)
-    s, _ = map_state(rng, 2)
-    x0, P0 = s.x.copy(), s.P.copy()
-    with pytest.raises(SlamNumericalError, match="NaN/Inf"):
-        s.add_feature([np.nan, 0, 1], np.eye(3), np.zeros((3, s.n)))
-    with pytest.raises(SlamNumericalError, match="NaN/Inf.*feature 2"):
-        s.add_feature([0, 0, 1], np.full((3, 3), np.inf), np.zeros((3, s.n)))
-    with pytest.raises(SlamNumericalError, match="negative variance"):
-        s.add_feature([0, 0, 1], -np.eye(3), np.zeros((3, s.n)))
-    with pytest.raises(SlamNumericalError, match="not positive semi-definite"):
-        s.add_feature([0, 0, 1], np.eye(3), np.full((3, s.n), 10.0))   # |corr| > 1
-    assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0)
-    P = check_covariance(np.array([[1.0, 0.5], [0.5 + 1e-12, 2.0]]))
-    assert np.array_equal(P, P.T)
-    with pytest.raises(SlamNumericalError, match="x has NaN/Inf.*camera q"):
-        State(np.r_[np.zeros(3), np.nan, 0, 0, 0, np.zeros(6)], np.eye(13))
-
-
-# -- EKF update --------------------------------------------------------------------------------
-
-def dense_reference_update(state: State, ks, z, cam, R_pix):
-    """The textbook EKF update with dense H, as a reference for the compact implementation."""
-    n = state.n
-    m = len(ks)
-    H = np.zeros((2 * m, n))
-    h = np.zeros(2 * m)
-    for i, k in enumerate(ks):
-        uv, H_x, H_y, _ = h_and_jacobians(state.x_v, state.feature(k), cam)
-        h[2 * i:2 * i + 2] = uv
-        H[2 * i:2 * i + 2, :13] = H_x
-        H[2 * i:2 * i + 2, feature_slice(k)] = H_y
-    R = np.kron(np.eye(m), R_pix)
-    S = innovation_covariance(state.P, H, R)
-    K = state.P @ H.T @ np.linalg.inv(S)
-    x = state.x + K @ (np.asarray(z).reshape(-1) - h)
-    I_KH = np.eye(n) - K @ H
-    P = I_KH @ state.P @ I_KH.T + K @ R @ K.T
-    qn, J = normalise_quaternion_jacobian(x[Q_SLICE])
-    x[Q_SLICE] = qn
-    T = np.eye(n)
-    T[3:7, 3:7] = J
-    return x, T @ P @ T.T, S
-
-
-@pytest.mark.parametrize("model", ["brown", "fisheye"])
-def test_update_matches_dense_reference(model):
-    cam = CAMERAS[model]
-    rng = np.random.default_rng(14)
-    s, Y = map_state(rng, 6)
-    ks = [4, 1, 5, 1]   # any order, repeats allowed
-    R_pix = np.diag([1.5, 0.8])
-    z = np.array([project(cam, ((Y[k] - s.r) @ quat_to_rotation(s.q))[None])[0] for k in ks])
-    z += rng.normal(0, 1.0, z.shape)
-    x_ref, P_ref, S_ref = dense_reference_update(s, ks, z, cam, R_pix)
-    res = update(s, ks, z, cam, R_pix)
-    assert np.allclose(res.S, S_ref, rtol=1e-10, atol=1e-10)
-    assert np.allclose(s.x, x_ref, rtol=1e-10, atol=1e-12)
-    assert np.allclose(s.P, P_ref, rtol=1e-8, atol=1e-14)
-    assert abs(np.linalg.norm(s.q) - 1) < 1e-15 and np.array_equal(s.P, s.P.T)
-    assert res.nu.shape == (4, 2) and np.isfinite(res.nis)
-
-
-def test_update_one_and_measurement_order():
-    rng = np.random.default_rng(15)
-    s, Y = map_state(rng, 5)
-    s.P[feature_slice(3), feature_slice(3)] += 1.0 * np.eye(3)   # feature 3 most uncertain
-    ks = np.arange(5)
-    uv, S, valid = innovation_covariances(s, ks, PINHOLE, 1.0)
-    res = update(s.copy(), ks, uv, PINHOLE, 1.0)
-    for i in range(5):
-        assert np.allclose(S[i], res.S[2 * i:2 * i + 2, 2 * i:2 * i + 2])
-    order = measurement_order(s, ks, PINHOLE, 1.0)
-    assert order[0] == 3 and sorted(order) == list(ks)
-    assert np.all(np.diff([np.linalg.det(S[k]) for k in order]) <= 0)
-    # One feature at a time equals the batch update of that one feature.
-    s1, s2 = s.copy(), s.copy()
-    update_one(s1, 3, uv[3] + [2.0, -1.0], PINHOLE, 1.0)
-    update(s2, [3], (uv[3] + [2.0, -1.0])[None], PINHOLE, 1.0)
-    assert np.array_equal(s1.x, s2.x) and np.array_equal(s1.P, s2.P)
-    # A point behind the camera is refused, and the state is unchanged.
-    s.x[feature_slice(0)] = s.r - 2.0 * quat_to_rotation(s.q)[:, 2]
-    x0, P0 = s.x.copy(), s.P.copy()
-    with pytest.raises(FeatureNotMeasurable, match=r"features \[0\]"):
-        update(s, [0, 1], np.zeros((2, 2)), PINHOLE, 1.0)
-    assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0)
-    assert 0 not in measurement_order(s, ks, PINHOLE, 1.0)
+        st.assert_jacobian(dy_dx, st.fd_jacobian(lambda a: init_point_from_depth(a, uv, lam, cam)[0], x_v))
+        st.assert_jacobian(dy_duv, st.fd_jacobian(lambda b: init_point_from_depth(x_v, b, lam, cam)[0], uv, h=1e-4),
+                           rtol=1e-5)
+        st.assert_jacobian(dy_dd, d)
 
 
 @pytest.mark.parametrize("model", sorted(CAMERAS))
-def test_add_point_feature_covariance(model):
+def test_predictions_agree_with_the_lens_model(model):
+    """measurement.predict (both kinds) and predict_points against kinematics.camera.project of
+    the features' world points; features behind the camera are NaN and invalid."""
     cam = CAMERAS[model]
-    rng = np.random.default_rng(16)
-    s, _ = map_state(rng, 3)
-    n = s.n
-    P0 = s.P.copy()
-    uv, lam, var_d, R_pix = np.array([200.0, 150.0]), 2.5, 0.3**2, np.diag([2.0, 3.0])
-    y, J_x, J_uv, J_d = init_point_from_depth(s.x_v, uv, lam, cam)
-    k = add_point_feature(s, uv, lam, var_d, R_pix, cam)
-    assert k == 3 and np.allclose(s.feature(k), y)
-    # The new covariance is A blockdiag(P, R, var_d) A^T for the augmenting map A.
-    A = np.zeros((n + 3, n + 3))
-    A[:n, :n] = np.eye(n)
-    A[n:, :13] = J_x
-    A[n:, n:n + 2] = J_uv
-    A[n:, n + 2] = J_d
-    P_aug = np.zeros((n + 3, n + 3))
-    P_aug[:n, :n] = P0
-    P_aug[n:n + 2, n:n + 2] = R_pix
-    P_aug[n + 2, n + 2] = var_d
-    assert np.allclose(s.P, A @ P_aug @ A.T, atol=1e-15)
-    with pytest.raises(ValueError, match="depth"):
-        add_point_feature(s, uv, -1.0, var_d, R_pix, cam)
-
-
-# -- consistency -------------------------------------------------------------------------------
-
-SIM_CFG = SlamConfig(sigma_a=0.5, sigma_alpha=0.3, sigma_pixel=1.0)
-N_RUNS, N_FRAMES, N_POINTS = 20, 80, 20
-SIG_R0, SIG_TH0, SIG_V0, SIG_W0, SIG_Y0 = 0.01, 0.01, 0.05, 0.05, 0.03
-
-
-def simulate_run(seed: int, sequential: bool, n_frames: int = N_FRAMES) -> dict:
-    """One Monte Carlo run: the true camera follows the motion model with impulses drawn from
-    the filter's own P_n (sigma_a, sigma_alpha), 20 known points, 1 px pixel noise, predict and
-    update every frame. Returns the per-frame position and orientation NEES and checks."""
-    rng = np.random.default_rng(seed)
-    cam, cfg = PINHOLE, SIM_CFG
-    Y = np.column_stack([rng.uniform(-3.0, 3.0, N_POINTS), rng.uniform(-2.0, 2.0, N_POINTS),
-                         rng.uniform(3.0, 5.0, N_POINTS)])
-    x_true = np.r_[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.1, -0.05, 0.0, 0.0, 0.03, 0.01]
-
-    q_est = quat_multiply(x_true[Q_SLICE], rotvec_to_quat(rng.normal(0, SIG_TH0, 3)))
-    x_v = np.r_[x_true[:3] + rng.normal(0, SIG_R0, 3), q_est,
-                x_true[V_SLICE] + rng.normal(0, SIG_V0, 3), x_true[W_SLICE] + rng.normal(0, SIG_W0, 3)]
-    s = State.from_camera(x_v, camera_covariance(q_est, SIG_R0, SIG_TH0, SIG_V0, SIG_W0))
-    for y in Y:
-        s.add_feature(y + rng.normal(0, SIG_Y0, 3), SIG_Y0**2 * np.eye(3), np.zeros((3, s.n)))
-
-    Pn_chol = np.sqrt(np.diag(noise_covariance(DT, cfg)))
-    nees_r, nees_th, n_seen, min_eig = [], [], [], np.inf
-    for frame in range(n_frames):
-        x_true = f_and_dfdx_dfdn(x_true, DT, Pn_chol * rng.normal(size=6))[0]
-        predict(s, DT, cfg)
-        P_cam = (Y - x_true[:3]) @ quat_to_rotation(x_true[Q_SLICE])
-        uv_true = project(cam, P_cam)
-        seen = np.flatnonzero(in_image(cam, uv_true, margin=10.0))
-        z = uv_true[seen] + rng.normal(0, cfg.sigma_pixel, (len(seen), 2))
-        if sequential:
-            order = measurement_order(s, seen, cam, cfg.R_pix)
-            for k in order:
-                update_one(s, k, z[np.searchsorted(seen, k)], cam, cfg.R_pix, cfg)
-        elif len(seen):
-            update(s, seen, z, cam, cfg.R_pix, cfg)
-        n_seen.append(len(seen))
-
-        e = x_true[:3] - s.r
-        nees_r.append(e @ np.linalg.solve(s.P[R_SLICE, R_SLICE], e))
-        # Orientation error in the estimate's local frame, with its 3x3 covariance.
-        dth = quat_to_rotvec(quat_multiply([s.q[0], *-s.q[1:]], x_true[Q_SLICE]))
-        Tp = 4.0 * tangent_basis(s.q).T      # pseudo-inverse of dq/dtheta
-        P_th = Tp @ s.P[Q_SLICE, Q_SLICE] @ Tp.T
-        nees_th.append(dth @ np.linalg.solve(P_th, dth))
-        assert np.isfinite(s.x).all() and np.isfinite(s.P).all()
-        assert np.array_equal(s.P, s.P.T)
-        if frame % 10 == 9:
-            min_eig = min(min_eig, np.linalg.eigvalsh(reduced_covariance(s))[0])
-            lam_full = np.linalg.eigvalsh(s.P)
-            assert lam_full[0] > -1e-12 * lam_full[-1]
-    return dict(nees_r=np.array(nees_r), nees_th=np.array(nees_th), n_seen=np.array(n_seen),
-                min_eig=min_eig)
-
-
-def chi2_band(dof: int, runs: int) -> tuple[float, float]:
-    """95% band of the average of `runs` independent chi-square(dof) NEES values."""
-    return chi2.ppf(0.025, dof * runs) / runs, chi2.ppf(0.975, dof * runs) / runs
-
-
-# The batch update over 20 runs is the consistency test proper; MonoSLAM's sequential updates
-# (largest S first) cost ~15 update calls a frame, so they get fewer, shorter runs (a wider band)
-# to keep the file fast. (20 x 100 sequential gives the same figures as batch.)
-@pytest.mark.parametrize("sequential, n_runs, n_frames",
-                         [(False, N_RUNS, N_FRAMES), (True, 5, 40)], ids=["batch", "sequential"])
-def test_filter_is_consistent(sequential, n_runs, n_frames):
-    runs = [simulate_run(1000 + i, sequential, n_frames) for i in range(n_runs)]
-    nees_r = np.array([r["nees_r"] for r in runs])       # (runs, frames)
-    nees_th = np.array([r["nees_th"] for r in runs])
-    lo, hi = chi2_band(3, n_runs)
-    # Every frame's run-average is chi2(3 M) / M if the filter is consistent; averaging over the
-    # frames as well only narrows its spread, so the single-frame 95% band is a valid (slightly
-    # conservative) band for the overall average.
-    avg_r, avg_th = nees_r.mean(), nees_th.mean()
-    print(f"\n{'sequential' if sequential else 'batch'}: position NEES {avg_r:.3f}, orientation "
-          f"NEES {avg_th:.3f}, 95% band [{lo:.3f}, {hi:.3f}]; frames with run-average in band "
-          f"{np.mean((nees_r.mean(0) > lo) & (nees_r.mean(0) < hi)):.0%}; points seen "
-          f"{min(r['n_seen'].min() for r in runs)}..{max(r['n_seen'].max() for r in runs)}; "
-          f"min eigenvalue of reduced P {min(r['min_eig'] for r in runs):.3g}")
-    assert lo < avg_r < hi
-    assert lo < avg_th < hi
-    # Most frames' run-averages lie in the band too (about 95% expected).
-    assert np.mean((nees_r.mean(0) > lo) & (nees_r.mean(0) < hi)) > 0.8
-    assert min(r["min_eig"] for r in runs) > 0
-    assert min(r["n_seen"].min() for r in runs) >= 5
+    rng = np.random.default_rng(15)
+    s = mixed_state(rng, CAMERA_DIM, cam=cam)
+    R = quat_to_rotation(s.q)
+    Y = np.array([inverse_depth.world_point(s.feature(k), s.anchors[k]) if s.kinds[k] == INVERSE_DEPTH
+                  else s.feature(k) for k in range(s.n_features)])
+    expected = project(cam, (Y - s.r) @ R)
+    pred = predict_h(s, np.arange(s.n_features), cam)
+    assert pred.valid.all()
+    np.testing.assert_allclose(pred.uv, expected, atol=1e-8)
+    uv, H_c, valid = predict_points(s.x_v, Y, cam)
+    assert valid.all()
+    np.testing.assert_allclose(uv, expected, atol=1e-8)
+    # Both kinds see the camera through the same point: the same d(uv)/d(r, q).
+    np.testing.assert_allclose(H_c, pred.H_c, rtol=1e-9, atol=1e-9)
+    # Turned about: every feature is behind the camera (an inverse-depth one's ray h_C = R^T
+    # (rho (c - r) + m) points backwards).
+    s.x[Q_SLICE] = quat_multiply(s.q, [0.0, 0.0, 1.0, 0.0])
+    pred = predict_h(s, np.arange(s.n_features), cam)
+    assert not pred.valid.any() and np.isnan(pred.uv).all() and np.isnan(pred.H_c).all() and np.isnan(pred.H_f).all()
+    assert not predict_points(s.x_v, Y, cam)[2].any()

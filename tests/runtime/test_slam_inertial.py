@@ -1,55 +1,269 @@
-"""Inertial prediction (inertial.py): Jacobians against finite differences, the split of a frame
-into IMU intervals, and integration against an analytic trajectory."""
+"""Inertial prediction (inertial.py): the IMU step's Jacobians against central differences with
+the bias columns (camera block of 19), the split of a frame into IMU intervals, integration
+against an analytic trajectory, the covariance against the dense product of the intervals, the
+bias states converging to an IMU's known constant biases in a simulation with camera updates,
+and ImuStream's checks of the rows (NaN, spikes, out of order, gaps)."""
+
+from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import test_slam_core as core
-from runtime.slam.inertial import GRAVITY, imu_intervals, imu_step_and_jacobians, predict_imu
-from runtime.slam.state import Q_SLICE, R_SLICE, V_SLICE, W_SLICE, State, quat_to_rotation
+import slam_testing as st
+from kinematics.camera import in_image
+from runtime.slam.config import MapSettings, SlamConfig
+from runtime.slam.features import POINT
+from runtime.slam.filter import update
+from runtime.slam.inertial import GRAVITY, ImuStream, imu_intervals, imu_step_and_jacobians, predict_imu
+from runtime.slam.motion import bias_walk
+from runtime.slam.quaternion import normalise_quaternion_jacobian, quat_to_rotation
+from runtime.slam.state import (
+    BA_SLICE,
+    BG_SLICE,
+    CAMERA_DIM,
+    CAMERA_DIM_BIASED,
+    Q_SLICE,
+    R_SLICE,
+    V_SLICE,
+    W_SLICE,
+    State,
+)
+
+CFG = SlamConfig()
 
 
+# -- the step and its Jacobians ----------------------------------------------------------------
+
+@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
 @pytest.mark.parametrize("d", [0.0, 0.005, 0.03])
-def test_imu_step_jacobians(d):
+def test_imu_step_jacobians(d, cam_dim):
     rng = np.random.default_rng(11)
     for _ in range(3):
-        x_v = core.random_camera(rng, 1.0)
+        x_v = st.random_camera(rng, 1.0, cam_dim)
         x_v[Q_SLICE] *= 1.1           # defined on R^4, like the motion model's
         omega, f = rng.normal(0, 1.0, 3), rng.normal(0, 5.0, 3)
         x_new, F, G = imu_step_and_jacobians(x_v, omega, f, d)
-        core.assert_jacobian(F, core.fd_jacobian(lambda a: imu_step_and_jacobians(a, omega, f, d)[0], x_v))
+        assert F.shape == (cam_dim, cam_dim) and G.shape == (cam_dim, 6)
+        st.assert_jacobian(F, st.fd_jacobian(lambda a: imu_step_and_jacobians(a, omega, f, d)[0], x_v))
         u = np.r_[f, omega]
-        core.assert_jacobian(G, core.fd_jacobian(lambda b: imu_step_and_jacobians(x_v, b[3:], b[:3], d)[0], u))
+        st.assert_jacobian(G, st.fd_jacobian(lambda b: imu_step_and_jacobians(x_v, b[3:], b[:3], d)[0], u))
+        if cam_dim == CAMERA_DIM_BIASED:
+            assert np.array_equal(x_new[13:], x_v[13:])          # biases held
+            # A bias is an offset of the sample: the step with biases b equals the step without
+            # bias states fed the corrected sample.
+            x13, _, _ = imu_step_and_jacobians(x_v[:13], omega - x_v[BG_SLICE], f - x_v[BA_SLICE], d)
+            np.testing.assert_allclose(x_new[:13], x13, atol=1e-14)
+            if d > 0:                                             # the bias columns are in use
+                assert np.abs(F[:13, 13:19]).max() > 0.1 * d
 
 
 def test_intervals_cover_the_frame_with_the_sample_holding_over_each():
     imu = np.array([[0.0, *[1, 0, 0], *[0, 0, 1]], [0.005, *[2, 0, 0], *[0, 0, 2]], [0.010, *[3, 0, 0], *[0, 0, 3]],
                     [0.015, *[4, 0, 0], *[0, 0, 4]]])
-    steps = imu_intervals(imu, 0.003, 0.012)
-    assert [round(d, 9) for d, _, _ in steps] == [0.002, 0.005, 0.002]
-    assert [w[0] for _, w, _ in steps] == [1, 2, 3]
+    d, omegas, fs = imu_intervals(imu, 0.003, 0.012)
+    np.testing.assert_allclose(d, [0.002, 0.005, 0.002], atol=1e-12)
+    assert omegas[:, 0].tolist() == [1, 2, 3] and fs[:, 2].tolist() == [1, 2, 3]
+    d, omegas, _ = imu_intervals(imu, 0.005, 0.010)              # on the sample times
+    np.testing.assert_allclose(d, [0.005], atol=1e-12)
+    assert omegas[:, 0].tolist() == [2]
     with pytest.raises(ValueError, match="no IMU sample"):
         imu_intervals(imu[1:], 0.003, 0.012)
 
 
-def test_prediction_follows_an_analytic_trajectory():
-    # Constant world acceleration and constant body rate: exact IMU samples, fine steps.
+def analytic_imu(a_world, w_cam, R0, t, b_g=np.zeros(3), b_a=np.zeros(3)):
+    """Samples of a camera with constant world acceleration and constant body rate, with
+    constant biases added: the integrator holds R(q) f, the world acceleration, exactly."""
+    Rt = [R0 * Rotation.from_rotvec(w_cam * ti) for ti in t]
+    return np.array([[ti, *(w_cam + b_g), *(Ri.as_matrix().T @ (a_world - GRAVITY) + b_a)] for ti, Ri in zip(t, Rt)]), Rt
+
+
+@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
+def test_prediction_follows_an_analytic_trajectory(cam_dim):
     a_world = np.array([0.3, -0.2, 0.1])
     w_cam = np.array([0.2, -0.4, 0.3])
     R0 = Rotation.from_euler("xyz", [-100, 10, 40], degrees=True)
     r0, v0 = np.array([0.1, 0.2, 1.4]), np.array([0.3, 0.0, -0.1])
+    b_g, b_a = (np.array([0.004, -0.006, 0.003]), np.array([0.05, -0.04, 0.06])) if cam_dim > 13 else (0, 0)
     t = np.arange(0.0, 0.5001, 0.001)
-    Rt = [R0 * Rotation.from_rotvec(w_cam * ti) for ti in t]
-    # Samples at each instant: the integrator holds R(q) f, the world acceleration, exactly.
-    imu = np.array([[ti, *w_cam, *(Ri.as_matrix().T @ (a_world - GRAVITY))] for ti, Ri in zip(t, Rt)])
+    imu, Rt = analytic_imu(a_world, w_cam, R0, t, b_g, b_a)
     x_v = np.r_[r0, R0.as_quat()[[3, 0, 1, 2]], v0, w_cam]
-    s = State.from_camera(x_v, np.eye(13) * 1e-6)
-    predict_imu(s, imu, 0.0, 0.5)
+    if cam_dim > 13:
+        x_v = np.r_[x_v, b_g, b_a]                    # the filter knows the biases: they are removed
+    s = State.from_camera(x_v, np.eye(cam_dim) * 1e-6)
+    predict_imu(s, imu, 0.0, 0.5, CFG)
     T = 0.5
     np.testing.assert_allclose(s.x[R_SLICE], r0 + v0 * T + 0.5 * a_world * T * T, atol=1e-6)
     np.testing.assert_allclose(s.x[V_SLICE], v0 + a_world * T, atol=1e-6)
     np.testing.assert_allclose(quat_to_rotation(s.x[Q_SLICE]), Rt[-1].as_matrix(), atol=1e-9)
-    np.testing.assert_allclose(s.x[W_SLICE], w_cam)
-    # Uncertainty grows with the integration, and the covariance stays symmetric.
-    assert s.P[0, 0] > 1e-6 and np.allclose(s.P, s.P.T)
+    np.testing.assert_allclose(s.x[W_SLICE], w_cam, atol=1e-12)
+    assert s.P[0, 0] > 1e-6 and np.array_equal(s.P, s.P.T)
+    if cam_dim > 13:
+        # Without bias states the same samples drift: the biases are what it integrates.
+        s13 = State.from_camera(x_v[:13], np.eye(13) * 1e-6)
+        predict_imu(s13, imu, 0.0, 0.5, CFG)
+        assert np.linalg.norm(s13.r - s.r) > 0.5 * np.linalg.norm(b_a) * T**2 * 0.5
+
+
+def test_prediction_covariance_is_the_product_of_the_intervals():
+    """P_vv through each interval with its own white noise (density^2 / d), the cross-covariance
+    by the product of the intervals' F, the bias walks over the frame, then the quaternion's
+    normalisation Jacobian: a dense reference with the step's own (tested) Jacobians."""
+    rng = np.random.default_rng(12)
+    x_v = st.random_camera(rng, 0.5, CAMERA_DIM_BIASED)
+    s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1, CAMERA_DIM_BIASED))
+    for _ in range(3):
+        s.add_feature(POINT, rng.normal(0, 2, 3), 0.01 * np.eye(3), 0.05 * rng.normal(size=(3, s.n)) @ s.P)
+    t = np.r_[0.0, np.sort(rng.uniform(0.001, 0.04, 7)), 0.05]
+    imu = np.column_stack([t, rng.normal(0, 1, (len(t), 3)), rng.normal(0, 5, (len(t), 3))])
+    t0, t1 = 0.004, 0.037
+    ds, omegas, fs = imu_intervals(imu, t0, t1)
+    x, P_vv, F_total = s.x[:19].copy(), s.P[:19, :19].copy(), np.eye(19)
+    for d, w, f in zip(ds, omegas, fs):
+        x, F, G = imu_step_and_jacobians(x, w, f, d)
+        Pn = np.diag(np.r_[np.full(3, CFG.imu_accel_noise**2 / d), np.full(3, CFG.imu_gyro_noise**2 / d)])
+        P_vv = F @ P_vv @ F.T + G @ Pn @ G.T
+        F_total = F @ F_total
+    bias_walk(P_vv, t1 - t0, CFG)
+    P = s.P.copy()
+    P[:19, :19] = P_vv
+    P[:19, 19:] = F_total @ s.P[:19, 19:]
+    P[19:, :19] = P[:19, 19:].T
+    qn, J = normalise_quaternion_jacobian(x[Q_SLICE])
+    T = np.eye(s.n)
+    T[Q_SLICE, Q_SLICE] = J
+    x_ref = np.r_[x, s.x[19:]]
+    x_ref[Q_SLICE] = qn
+    predict_imu(s, imu, t0, t1, CFG)
+    st.assert_close(s.x, x_ref, 1e-13)
+    st.assert_close(s.P, T @ P @ T.T, 1e-11)
+
+
+# -- the bias states converge ------------------------------------------------------------------
+
+def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int = 210, fps: int = 30) -> State:
+    """A camera swaying and turning (about 0.5 rad, 0.2 m) in front of known points, its
+    IMU with constant biases ``b_g``, ``b_a`` and white noise of the filter's own densities,
+    integrated with the filter's own zero-order hold (so the IMU model is exact); the filter
+    (bias states from zero with their configured prior) predicts through the samples and is
+    updated by the visible points' pixels (1 px) every frame. Returns the final state."""
+    rng = np.random.default_rng(seed)
+    cam = st.PINHOLE
+    dt = 1.0 / rate_hz
+    per_frame = rate_hz // fps
+    n = int(seconds * rate_hz)
+    t = np.arange(n + 1) * dt
+    # The true attitude R0 Exp(theta(t)), theta smooth and within 0.4 rad, gives the body rates
+    # of each interval exactly (R_j+1 = R_j Exp(omega_j dt)); the world acceleration is a damped
+    # spring towards the start driven by sines, so the camera sways but stays put.
+    ph = rng.uniform(0, 2 * np.pi, 6)
+    theta = 0.4 * np.column_stack([np.sin(0.9 * t + ph[0]), np.sin(0.7 * t + ph[1]), np.sin(1.3 * t + ph[2])])
+    R0 = st.look_at([0, 0, 0], [0, 1, 0])
+    Rt = Rotation.from_matrix(R0) * Rotation.from_rotvec(theta)
+    w_true = (Rt[:-1].inv() * Rt[1:]).as_rotvec() / dt
+    x = np.r_[0.0, 0.0, 0.0, st.quat_of(R0), 0.0, 0.0, 0.0, w_true[0]]
+    sg, sa = CFG.imu_gyro_noise / np.sqrt(dt), CFG.imu_accel_noise / np.sqrt(dt)
+    rows, states = [], [x]
+    for j in range(n):
+        a = -2.0 * x[:3] - 1.0 * x[7:10] + 0.4 * np.sin([1.1 * t[j] + ph[3], 0.8 * t[j] + ph[4], 1.5 * t[j] + ph[5]])
+        f = quat_to_rotation(x[Q_SLICE]).T @ (a - GRAVITY)
+        rows.append([t[j], *(w_true[j] + b_g + rng.normal(0, sg, 3)), *(f + b_a + rng.normal(0, sa, 3))])
+        x, _, _ = imu_step_and_jacobians(x, w_true[j], f, dt)
+        x[Q_SLICE] /= np.linalg.norm(x[Q_SLICE])
+        states.append(x)
+    rows = np.array(rows)
+    # Known points 2 to 4 m away, up to about 60 degrees around the first view's axis (+y).
+    d = np.column_stack([rng.uniform(-1.7, 1.7, 150), np.ones(150), rng.uniform(-1.7, 1.7, 150)])
+    Y = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(2.0, 4.0, (150, 1))
+    cfg = CFG
+    x_v = np.r_[states[0][:13], np.zeros(6)]
+    x_v[:3] += rng.normal(0, 0.003, 3)
+    P_v = st.camera_covariance(x_v[Q_SLICE], 0.003, 1e-3, 0.01, 0.05, CAMERA_DIM_BIASED, cfg.gyro_bias_sigma0,
+                               cfg.accel_bias_sigma0)
+    s = State.from_camera(x_v, P_v)
+    sig_y = 0.001
+    for y in Y:
+        s.add_feature(POINT, y + rng.normal(0, sig_y, 3), sig_y**2 * np.eye(3), np.zeros((3, s.n)))
+    for k in range(1, n // per_frame + 1):
+        j0, j1 = (k - 1) * per_frame, k * per_frame
+        predict_imu(s, rows[j0:j1 + 1], t[j0], t[j1], cfg)
+        xt = states[j1]
+        uv = st.pixels(cam, quat_to_rotation(xt[Q_SLICE]), xt[:3], Y)
+        seen = np.flatnonzero(in_image(cam, uv, margin=20.0))
+        assert len(seen) >= 8
+        update(s, seen, uv[seen] + rng.normal(0, 1.0, (len(seen), 2)), cam, 1.0)
+    return s
+
+
+@pytest.mark.parametrize("seed, b_g, b_a", [
+    (1, [0.004, -0.006, 0.003], [0.05, -0.04, 0.06]),
+    (2, [-0.003, 0.002, 0.007], [-0.03, 0.07, -0.05]),
+])
+def test_bias_states_converge_to_the_imus_biases(seed, b_g, b_a):
+    b_g, b_a = np.array(b_g), np.array(b_a)
+    s = simulate_biased_imu(seed, b_g, b_a)
+    e_g, e_a = s.b_g - b_g, s.b_a - b_a
+    sd_g, sd_a = np.sqrt(np.diag(s.P)[BG_SLICE]), np.sqrt(np.diag(s.P)[BA_SLICE])
+    print(f"\ngyro bias {np.round(1000 * s.b_g, 2)} mrad/s (true {1000 * b_g}, sd {np.round(1000 * sd_g, 2)}); "
+          f"accel bias {np.round(100 * s.b_a, 2)} cm/s^2 (true {100 * b_a}, sd {np.round(100 * sd_a, 2)})")
+    # Within 3 sigma of the filter's own covariance ...
+    assert (np.abs(e_g) < 3 * sd_g).all() and (np.abs(e_a) < 3 * sd_a).all()
+    # ... that covariance far below the prior's (the biases were learnt) ...
+    assert (sd_g < 0.3 * CFG.gyro_bias_sigma0).all() and (sd_a < 0.3 * CFG.accel_bias_sigma0).all()
+    # ... and clearly nearer the truth than the prior's zero.
+    assert np.linalg.norm(e_g) < 0.25 * np.linalg.norm(b_g)
+    assert np.linalg.norm(e_a) < 0.25 * np.linalg.norm(b_a)
+
+
+# -- ImuStream ---------------------------------------------------------------------------------
+
+def rows(t, w=(0.01, 0.02, -0.01), a=(0.0, -9.81, 0.1)):
+    t = np.atleast_1d(np.asarray(t, float))
+    return np.column_stack([t, np.tile(w, (len(t), 1)), np.tile(a, (len(t), 1))])
+
+
+def test_imu_stream_drops_and_counts_bad_rows():
+    s = ImuStream(MapSettings())
+    assert s.add(rows(np.arange(0.0, 0.1, 0.005))) == []
+    good = rows(np.arange(0.1, 0.2, 0.005))
+    bad = good.copy()
+    bad[2, 1] = np.nan                      # a NaN row
+    bad[5, 4] = np.inf
+    bad[7, 3] = 1e30                        # spikes: a 1e30 rate and a 1e30 acceleration
+    bad[9, 6] = -1e30
+    bad[11, 0] = 0.05                       # out of time order (before rows already given)
+    bad[13, 0] = bad[12, 0]                 # a repeated time stamp
+    msgs = s.add(bad)
+    c = s.counts
+    assert (c.rows, c.non_finite, c.spikes, c.out_of_order) == (40, 2, 2, 2)
+    assert any("2 IMU samples with NaN/Inf dropped" in m for m in msgs)
+    assert any("2 IMU samples beyond the sensor's range (spikes) dropped" in m for m in msgs)
+    assert any("2 IMU samples out of time order dropped" in m for m in msgs)
+    assert len(s.rows) == 40 - 6 and np.isfinite(s.rows).all() and np.all(np.diff(s.rows[:, 0]) > 0)
+    assert np.abs(s.rows[:, 1:4]).max() < 1 and np.abs(s.rows[:, 4:7]).max() < 10
+    # A later row older than the last good one is out of order too, counted again.
+    s.add(rows([0.15]))
+    assert s.counts.out_of_order == 3
+
+
+def test_imu_stream_covering_and_gaps():
+    settings = MapSettings(imu_max_gap_s=0.05)
+    s = ImuStream(settings)
+    t = np.r_[np.arange(0.0, 0.5, 0.005), np.arange(0.62, 1.0, 0.005)]      # a 0.125 s gap
+    s.add(rows(t))
+    seg = s.covering(0.1, 0.2)
+    assert seg is not None and seg[0, 0] <= 0.1 and seg[-1, 0] <= 0.2 and seg[-1, 0] > 0.2 - 0.005 - 1e-9
+    d, _, _ = imu_intervals(seg, 0.1, 0.2)
+    np.testing.assert_allclose(d.sum(), 0.1, atol=1e-12)
+    assert s.counts.gaps == 0
+    assert s.covering(0.48, 0.53) is not None       # within the gap allowance at its start
+    assert s.covering(0.5, 0.6) is None              # across the gap
+    assert s.covering(0.55, 0.65) is None
+    assert s.counts.gaps == 2
+    assert s.covering(0.7, 0.8) is not None and s.counts.gaps == 2
+    assert s.covering(1.2, 1.3) is None              # beyond the last row
+    assert s.counts.gaps == 3
+    s.drop_before(0.7)
+    assert s.rows[0, 0] <= 0.7 < s.rows[1, 0]
+    assert s.covering(0.7, 0.75) is not None
+    assert ImuStream(settings).covering(0.0, 0.1) is None      # nothing yet: not a gap

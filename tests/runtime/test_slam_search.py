@@ -1,10 +1,15 @@
-"""Active search and new features against synthetic images with known answers."""
+"""Active search, new features and template warping against synthetic images with known
+answers."""
+
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from runtime.slam.features import find_new_corners, grey, new_features
+import slam_testing as st
+from runtime.slam.corners import find_new_corners, grey, new_features
 from runtime.slam.search import extract_template, search
+from runtime.slam.templates import MapFeature, first_view_patch, local_plane_normal, patch_half, warped_template
 
 
 def textured(seed=0, size=(240, 320)):
@@ -67,8 +72,6 @@ def test_score_ignores_gain_and_offset_of_the_lighting():
 
 
 def test_local_plane_normal_recovers_a_plane_and_refuses_what_is_not_one():
-    from runtime.slam.system import local_plane_normal
-
     rng = np.random.default_rng(1)
     n_true = np.array([0.2, -0.3, 0.93])
     n_true /= np.linalg.norm(n_true)
@@ -91,17 +94,80 @@ def test_local_plane_normal_recovers_a_plane_and_refuses_what_is_not_one():
 
 def test_new_features_are_kept_only_where_the_motion_keeps_them_in_view():
     from kinematics.camera import default_camera
-    from runtime.slam.state import State
     from runtime.slam.system import MonoSLAM
 
     slam = MonoSLAM(default_camera())                   # 64 deg across; lookahead 0.6 s
     uv = np.array([[320.0, 240.0], [40.0, 240.0], [600.0, 240.0]])   # centre, left edge, right edge
     stays = {}
     for w_y in (0.0, 0.5, -0.5):                        # turning about the optical y axis, rad/s
-        slam.state = State.from_camera(np.r_[0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0, w_y, 0], np.eye(13) * 1e-4)
-        stays[w_y] = slam._stay_in_view(uv)
+        x_v = np.r_[0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0, w_y, 0]
+        stays[w_y] = slam.stay_in_view(x_v, uv)
     assert stays[0.0].all()
     # 0.3 rad in 0.6 s: the centre stays, the edge the camera turns away from leaves, the other stays.
     for w_y in (0.5, -0.5):
         assert stays[w_y][0] and stays[w_y][1] != stays[w_y][2], stays
     assert stays[0.5][1] == stays[-0.5][2]
+    # Moving sideways at 1 m/s: points 1 m away slide 0.6 m across, the leading edge's stay.
+    x_v = np.r_[0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0]
+    moving = slam.stay_in_view(x_v, uv)
+    assert not moving[1] and moving[2]
+
+
+# -- template warping ----------------------------------------------------------------------------
+
+CAM = st.PINHOLE
+VIEW_A = st.look_at([0.05, -0.30, 0.40], [0.02, 0.0, 0.0], up=(0, 1, 0)), np.array([0.05, -0.30, 0.40])
+VIEW_B = st.look_at([-0.25, -0.15, 0.36], [0.02, 0.0, 0.0], up=(0, 1, 0)), np.array([-0.25, -0.15, 0.36])
+
+
+@lru_cache(maxsize=None)
+def textured_plane(view: str) -> np.ndarray:
+    """The textured plane z = 0 (no target) seen from two views 30 cm apart, 35 degrees turned."""
+    R, r = VIEW_A if view == "A" else VIEW_B
+    return grey(st.render_target_scene(CAM, R, r, st.rectangle(0.01, 0.01, (5.0, 5.0)), card_margin=0.0,
+                                       background=st.texture(3, blur=1.5), texture_m=0.6))
+
+
+def zncc(a, b) -> float:
+    a, b = (a - a.mean()) / a.std(), (b - b.mean()) / b.std()
+    return float((a * b).mean())
+
+
+def test_a_template_warped_by_its_plane_looks_as_the_new_view_sees_it():
+    """A patch of a textured plane seen in view A, warped by the plane's homography to view B,
+    matches what view B sees there (ZNCC near 1), where the unwarped template does not; with the
+    wrong plane the warp is worse than with the right one."""
+    img_a, img_b = textured_plane("A"), textured_plane("B")
+    (Ra, ra), (Rb, rb) = VIEW_A, VIEW_B
+    x_b = np.r_[rb, st.quat_of(Rb)]
+    t = 15
+    scores = {"warped": [], "unwarped": [], "wrong plane": []}
+    for X in ([0.0, 0.0, 0.0], [0.06, 0.04, 0.0], [-0.05, 0.03, 0.0], [0.03, -0.05, 0.0]):
+        X = np.array(X)
+        uv_a = st.pixels(CAM, Ra, ra, X[None])[0]
+        uv_b = st.pixels(CAM, Rb, rb, X[None])[0]
+        f = MapFeature(0, extract_template(img_a, uv_a, t), 0, ra, patch=first_view_patch(img_a, uv_a, patch_half(t)),
+                       uv0=uv_a, R0=Ra, normal=np.array([0.0, 0.0, 1.0]))
+        seen = extract_template(img_b, uv_b, t)
+        scores["warped"].append(zncc(warped_template(f, x_b, X, CAM), seen))
+        scores["unwarped"].append(zncc(f.template, seen))
+        f.normal, f.rays0 = np.array([0.0, -1.0, 0.0]), None        # a wall instead of the floor
+        wrong = warped_template(f, x_b, X, CAM)
+        scores["wrong plane"].append(zncc(wrong, seen) if wrong is not f.template else -1.0)
+    print({k: np.round(v, 3).tolist() for k, v in scores.items()})
+    assert min(scores["warped"]) > 0.9
+    assert max(scores["unwarped"]) < min(scores["warped"]) - 0.1
+    assert max(scores["wrong plane"]) < min(scores["warped"])
+    # And the active search with the warped template finds the point where view B sees it.
+    X = np.array([0.06, 0.04, 0.0])
+    uv_a, uv_b = st.pixels(CAM, Ra, ra, X[None])[0], st.pixels(CAM, Rb, rb, X[None])[0]
+    f = MapFeature(0, extract_template(img_a, uv_a, t), 0, ra, patch=first_view_patch(img_a, uv_a, patch_half(t)),
+                   uv0=uv_a, R0=Ra, normal=np.array([0.0, 0.0, 1.0]))
+    m = search(img_b, warped_template(f, x_b, X, CAM), uv_b + [2.0, -1.5], np.diag([16.0, 16.0]))
+    assert m.found and np.linalg.norm(m.uv - uv_b) < 0.3
+
+
+def test_a_feature_without_a_patch_or_plane_keeps_its_template():
+    t = np.ones((15, 15), np.float32)
+    f = MapFeature(0, t, 0, np.zeros(3))
+    assert warped_template(f, np.r_[0, 0, 0, 1.0, 0, 0, 0], np.array([0, 0, 1.0]), CAM) is t

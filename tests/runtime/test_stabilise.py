@@ -15,9 +15,10 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, default_camera, unproject
 from runtime.sequence import SequenceWriter, read_trajectory
+from runtime.eval import rotation_errors_deg
 from runtime.vision2d.stabilise import (FEW_CORNERS_PREV, FEW_TRACKS, Stabiliser, StabiliseSettings,
                                         fovea_window, frame_rotation, gyro_rotation, residual_motion,
-                                        rotation_errors_deg, stabilise_sequence, to_grey)
+                                        stabilise_sequence, to_grey)
 
 CAM = default_camera()
 # The texture is a wider pinhole view from the first camera's centre, so every rotated frame lies

@@ -196,7 +196,7 @@ def test_twin_renders_after_pyvista_has_closed_its_egl_window(tmp_path):
 def test_recorded_depth_is_the_true_distance_along_the_optic_axis(tmp_path):
     """Depth images (TUM RGB-D, metres x 5000) against the target's plane intersected with each
     pixel's ray under the ground-truth pose; and map_errors on points placed on and off it."""
-    from runtime.slam.eval import map_errors
+    from runtime.eval import map_errors
 
     t = make_twin()
     try:

@@ -1,0 +1,149 @@
+"""Every tunable number of the SLAM, in two places: the filter's (:class:`SlamConfig`) and the
+map management's and start-up's (:class:`MapSettings`). The values were chosen on training
+seeds of the twin's scenes; benchmarks/README.md records how and on which, and the figures on
+held-out seeds."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+FEATURE_TYPES = ("inverse-depth", "particles")
+WARP_MODES = ("known", "neighbours", "all")
+
+
+def _check_numbers(obj, skip=()) -> None:
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        if f.name in skip or isinstance(v, (bool, str)):
+            continue
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"{type(obj).__name__}.{f.name} = {v!r} must be a finite number >= 0")
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """The filter's parameters.
+
+    sigma_a, sigma_alpha : constant-velocity impulses' standard deviations, m/s^2 and rad/s^2
+        (MonoSLAM's hand-held values are 4 and 6).
+    sigma_pixel : a feature measurement's standard deviation per axis, px.
+    imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
+        (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
+    gyro_bias_walk, accel_bias_walk : the bias states' random walks, rad/s/sqrt(s) and
+        m/s^2/sqrt(s).
+    gyro_bias_sigma0, accel_bias_sigma0 : the biases' prior standard deviations before any
+        still period (a MEMS part's offsets after factory trim), rad/s and m/s^2.
+    psd_rel_tol : the covariance guard's tolerance for negative eigenvalues (relative).
+    psd_check_every : frames between full positive-semi-definiteness checks (a Cholesky of P);
+        finiteness, symmetry and non-negative variances are checked at every step.
+    """
+
+    sigma_a: float = 4.0
+    sigma_alpha: float = 6.0
+    sigma_pixel: float = 1.0
+    imu_accel_noise: float = 0.004
+    imu_gyro_noise: float = 0.0005
+    gyro_bias_walk: float = 2e-4
+    accel_bias_walk: float = 2e-3
+    gyro_bias_sigma0: float = 0.01
+    accel_bias_sigma0: float = 0.1
+    psd_rel_tol: float = 1e-9
+    psd_check_every: int = 10
+
+    def __post_init__(self):
+        _check_numbers(self)
+
+
+DEFAULT_CONFIG = SlamConfig()
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """Map management, matching, start-up and re-localisation (paper, sections 4.1 to 4.3)."""
+
+    # -- features --
+    features: str = "inverse-depth"      # how new features start: FEATURE_TYPES
+    measure_max: int = 30                # features measured per frame, at most
+    visible_min: int = 24                # add features when fewer were matched (inliers)
+    new_per_frame: int = 4               # new features started in one frame, at most
+    min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
+    template_px: int = 15                # the appearance template's side (odd), at 640 px width
+    # -- inverse depth (Civera et al.) --
+    rho0: float = 1.0                    # initial inverse depth, 1/m
+    sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
+    linearity_threshold: float = 0.1     # convert to a point below this linearity index
+    # -- particles (the paper's factored sampling) --
+    particles: int = 100
+    depth_near_m: float = 0.5
+    depth_far_m: float = 5.0
+    gauss_ratio: float = 0.15
+    prune: float = 0.001
+    max_init_frames: int = 30
+    min_init_frames: int = 5
+    promote_std_gain: float = 2.0
+    outlier: float = 0.1
+    max_initialising: int = 6
+    # -- 1-point RANSAC (Civera, Grasa, Davison, Montiel 2010) --
+    ransac_threshold_px: float = 2.0     # low-innovation inliers: within this of a hypothesis
+    ransac_max_hypotheses: int = 60
+    ransac_confidence: float = 0.99
+    rescue_chi2: float = 9.21            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 99%)
+    # -- deletion, visibility, matching --
+    delete_min_attempts: int = 10
+    delete_ratio: float = 0.5
+    delete_young_attempts: int = 4       # a feature matched at most a quarter of its first 4+ searches goes
+    max_features: int = 150              # the map's size cap (the EKF's cost grows as its square)
+    consistency_window: int = 8          # a feature's last inlier innovations tested together:
+    consistency_confidence: float = 0.999  # deleted when their NIS sum exceeds this chi-square quantile
+    max_view_angle_deg: float = 60.0
+    max_range_ratio: float = 2.0
+    max_view_angle_known_deg: float = 60.0
+    max_range_ratio_known: float = 2.5
+    view_noise_angle_deg: float = 30.0   # a natural feature's measurement variance doubles this far
+    view_noise_scale: float = 1.5        # (angle, range ratio) from its first view
+    margin_px: float = 12.0
+    match_score: float = 0.25            # zero-mean normalised SSD 2 (1 - ZNCC): ZNCC >= 0.875
+    max_search_area_px: int = 40_000     # an ellipse larger than this is not searched
+    # -- lost track and re-localisation --
+    lost_after: int = 10                 # frames with fewer than 3 inliers before "lost"
+    lost_noise_gain: float = 2.0
+    reloc_candidates: int = 40
+    reloc_every: int = 3
+    reloc_min_inliers: int = 5
+    reloc_min_confirmed: int = 6
+    reloc_sigma_m: float = 0.02
+    reloc_sigma_rad: float = 0.02
+    # -- start-up from the known target --
+    target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
+    click_search_px: float = 6.0         # a clicked corner is sought this far from the click
+    start_pixel_sigma: float = 0.5       # a refined corner's standard deviation, px
+    start_max_rms_px: float = 1.5        # the refined corners must fit one pose this well
+    ambiguity_ratio: float = 4.0         # keep the second planar PnP pose if its error is within this
+    ambiguity_frames: int = 60           # frames to decide between the two, at most
+    init_sigma_v: float = 0.3
+    init_sigma_w: float = 0.5
+    # -- template warping (plane-induced homographies) --
+    warp: str = "all"
+    plane_radius_m: float = 0.25
+    plane_tol_m: float = 0.01
+    normals_every: int = 10
+    # -- IMU --
+    use_imu: bool = True
+    imu_biases: bool = True              # bias states in the filter (the camera block of 19)
+    still_gyro_rad_s: float = 0.02       # an IMU stretch is still below this rate spread
+    still_min_s: float = 0.3
+    imu_max_gap_s: float = 0.05          # a longer gap between samples falls back to vision only
+    imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes
+    imu_max_accel_m_s2: float = 160.0
+
+    def __post_init__(self):
+        if self.features not in FEATURE_TYPES:
+            raise ValueError(f"MapSettings.features = {self.features!r}: give one of {', '.join(FEATURE_TYPES)}")
+        if self.warp not in WARP_MODES:
+            raise ValueError(f"MapSettings.warp = {self.warp!r}: give one of {', '.join(WARP_MODES)}")
+        _check_numbers(self)
+        if self.measure_max < 3:
+            raise ValueError(f"MapSettings.measure_max = {self.measure_max}: measure at least 3 features a frame")
+        if self.template_px % 2 == 0 or self.template_px < 5:
+            raise ValueError(f"MapSettings.template_px = {self.template_px}: give an odd size of at least 5")

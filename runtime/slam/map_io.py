@@ -1,0 +1,168 @@
+"""Saving a map and starting from it later (paper, section 4: "to be able to re-locate itself
+within that environment at a later time").
+
+A map file is a NumPy ``.npz`` archive: a JSON header (format name, version, the camera model it
+was built with, the template size) and the arrays of the map: the features' state entries and
+their full covariance, their kinds and anchors, and each feature's appearance (template, first
+view's patch, pixel, camera centre and orientation, plane normal) and record (id, first frame,
+target point, searches and inliers). It is written to a temporary name and moved into place, so
+a killed run never leaves half a map.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from kinematics.camera import CameraIntrinsics
+
+from .features import FEATURE_DIMS
+from .state import CAMERA_DIM, State
+from .templates import MapFeature
+
+FORMAT = "wvr-slam-map"
+VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be used: not a map, corrupt or truncated, a newer format version,
+    or built with another camera. The message names the file and the problem."""
+
+
+@dataclass
+class SavedMap:
+    """A map as saved: the features' part of the state (``y`` (m,), ``P`` (m, m)), their kinds
+    (N,) and anchors (N, 3, 3), their appearance and record (``features``), the camera pose it
+    was last seen from (``T_world_cam`` (4, 4)) and the camera model."""
+
+    y: np.ndarray
+    P: np.ndarray
+    kinds: np.ndarray
+    anchors: np.ndarray
+    features: list[MapFeature]
+    T_world_cam: np.ndarray
+    camera: CameraIntrinsics
+
+    def state_with_camera(self, cam_dim: int, cfg) -> State:
+        """A filter state of this map with a camera block that knows nothing yet: at the last
+        saved pose, at rest, with a covariance too wide to search (the session starts lost and
+        re-localises), uncorrelated with the map."""
+        from .quaternion import quat_from_rotation
+
+        x_v = np.zeros(cam_dim)
+        x_v[0:3] = self.T_world_cam[:3, 3]
+        x_v[3:7] = quat_from_rotation(self.T_world_cam[:3, :3])
+        P_v = np.diag(np.r_[np.full(3, 1.0), np.full(4, 0.25), np.full(3, 0.3**2), np.full(3, 0.5**2),
+                            np.full(cam_dim - 13, 0.0)])
+        if cam_dim > CAMERA_DIM:
+            P_v[13:16, 13:16] = np.eye(3) * cfg.gyro_bias_sigma0**2
+            P_v[16:19, 16:19] = np.eye(3) * cfg.accel_bias_sigma0**2
+        n = cam_dim + len(self.y)
+        P = np.zeros((n, n))
+        P[:cam_dim, :cam_dim] = P_v
+        P[cam_dim:, cam_dim:] = self.P
+        return State(np.concatenate([x_v, self.y]), P, cam_dim, self.kinds, self.anchors)
+
+
+def save_map(path: str | Path, slam) -> Path:
+    """Write the SLAM's current map to ``path`` (``.npz`` added if missing); returns the path."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+    st = slam.state
+    feats = slam.features
+    cd = st.cam_dim
+    t = slam.template_px
+    ph = max((f.patch.shape[0] for f in feats if f.patch is not None), default=1)
+    patches = np.zeros((len(feats), ph, ph), np.float32)
+    has_patch = np.zeros(len(feats), bool)
+    for i, f in enumerate(feats):
+        if f.patch is not None and f.patch.shape[0] == ph:
+            patches[i], has_patch[i] = f.patch, True
+    nan3 = np.full(3, np.nan)
+    header = {"format": FORMAT, "version": VERSION, "camera": slam.cam.to_dict(), "template_px": t,
+              "features": len(feats)}
+    arrays = dict(
+        header=np.frombuffer(json.dumps(header).encode(), np.uint8),
+        y=st.x[cd:], P=st.P[cd:, cd:], kinds=st.kinds, anchors=st.anchors,
+        T_world_cam=slam.T_world_cam() if slam.localised else np.full((4, 4), np.nan),
+        ids=np.array([f.id for f in feats], np.int64), first_frame=np.array([f.first_frame for f in feats], np.int64),
+        known=np.array([f.known for f in feats], bool), attempts=np.array([f.attempts for f in feats], np.int64),
+        successes=np.array([f.successes for f in feats], np.int64),
+        templates=np.array([f.template for f in feats], np.float32).reshape(len(feats), t, t),
+        patches=patches, has_patch=has_patch,
+        uv0=np.array([f.uv0 if f.uv0 is not None else np.full(2, np.nan) for f in feats]).reshape(-1, 2),
+        r0=np.array([f.r0 for f in feats]).reshape(-1, 3),
+        R0=np.array([f.R0 if f.R0 is not None else np.eye(3) for f in feats]).reshape(-1, 3, 3),
+        normal=np.array([f.normal if f.normal is not None else nan3 for f in feats]).reshape(-1, 3),
+        normal_from_map=np.array([f.normal_from_map for f in feats], bool),
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedMap:
+    """Read a map file; with ``camera``, refuse a map built with another camera model. Raises
+    :class:`MapFileError` with a one-line reason."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: no such map file; give the file wvr slam --save-map wrote")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "header" not in z.files:
+                raise MapFileError(f"{path}: not a wvr SLAM map (no header); give a file wvr slam --save-map wrote")
+            header = json.loads(bytes(z["header"]).decode())
+            if header.get("format") != FORMAT:
+                raise MapFileError(f"{path}: not a wvr SLAM map (format {header.get('format')!r})")
+            version = header.get("version")
+            if not isinstance(version, int) or version > VERSION:
+                raise MapFileError(f"{path}: map format version {version!r} is newer than this wvr reads ({VERSION}); "
+                                   "upgrade wvr or rebuild the map")
+            a = {k: z[k] for k in z.files}
+    except MapFileError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError) as e:
+        raise MapFileError(f"{path}: corrupt or truncated map file ({type(e).__name__}); save the map again") from None
+    try:
+        cam = CameraIntrinsics.from_dict(header["camera"], source=f"{path} (its camera)")
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(f"{path}: the map's header has no usable camera model ({e})") from None
+    if camera is not None and cam.to_dict() != camera.to_dict():
+        mine, theirs = camera.to_dict()["camera"], cam.to_dict()["camera"]
+        diff = [k for k in sorted(set(mine) | set(theirs), key=lambda k: (k != "model", k)) if mine.get(k) != theirs.get(k)]
+        raise MapFileError(f"{path}: the map was built with another camera ({', '.join(diff)} differ from this "
+                           "sequence's camera.toml); a map serves only the camera model it was built with")
+    try:
+        kinds = a["kinds"].astype(np.intp)
+        n = len(kinds)
+        m = int(FEATURE_DIMS[kinds].sum())
+        if a["y"].shape != (m,) or a["P"].shape != (m, m) or a["anchors"].shape != (n, 3, 3) \
+                or a["templates"].shape[0] != n or header.get("features") != n:
+            raise ValueError("shapes")
+        feats = []
+        for i in range(n):
+            nrm = a["normal"][i]
+            feats.append(MapFeature(
+                id=int(a["ids"][i]), template=a["templates"][i].copy(), first_frame=int(a["first_frame"][i]),
+                r0=a["r0"][i].copy(), known=bool(a["known"][i]), attempts=int(a["attempts"][i]),
+                successes=int(a["successes"][i]), patch=a["patches"][i].copy() if a["has_patch"][i] else None,
+                uv0=a["uv0"][i].copy() if np.isfinite(a["uv0"][i]).all() else None, R0=a["R0"][i].copy(),
+                normal=nrm.copy() if np.isfinite(nrm).all() else None, normal_from_map=bool(a["normal_from_map"][i])))
+        T = a["T_world_cam"]
+        if not np.isfinite(T).all():
+            T = np.eye(4)
+        saved = SavedMap(a["y"].astype(float), a["P"].astype(float), kinds, a["anchors"].astype(float), feats, T, cam)
+        if not (np.isfinite(saved.y).all() and np.isfinite(saved.P).all()):
+            raise ValueError("non-finite")
+    except (KeyError, ValueError, IndexError, TypeError) as e:
+        raise MapFileError(f"{path}: the map's arrays are inconsistent ({e}); save the map again") from None
+    return saved

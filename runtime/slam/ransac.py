@@ -1,0 +1,193 @@
+"""1-point RANSAC for the EKF (Civera, Grasa, Davison and Montiel, "1-Point RANSAC for Extended
+Kalman Filtering: Application to Real-Time Structure from Motion and Visual Odometry", JFR 2010).
+
+The matches come from the active search, each inside its own 3-sigma ellipse (individually
+compatible), yet some are wrong: a repeated texture, a patch on an occluding contour whose
+background slides. With the EKF prior, one match is enough to hypothesise the whole state:
+
+1. for a match ``j``, update the mean only, ``x_j = x + K_j (z_j - h_j(x))`` with
+   ``K_j = P H_j^T S_j^-1``; predict every other match from ``x_j``; its support is the matches
+   within ``threshold_px`` (the low-innovation inliers). The best-supported hypothesis wins;
+   the number of hypotheses adapts to the inlier ratio found, ``log(1 - p) / log(1 - w)``;
+2. a full EKF update with the low-innovation inliers;
+3. each remaining match is predicted again with the updated mean and covariance and rescued
+   when its innovation passes the chi-square gate (high-innovation inliers); a second update
+   with those.
+
+Here every match is a possible hypothesis and there are tens of them, so the hypotheses are the
+matches in a seeded random order, at most ``max_hypotheses`` of them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from kinematics.camera import CameraIntrinsics, lens_kernel_args
+
+from .features import FEATURE_DIMS
+from .filter import FrameUpdate
+from .kernels import compiled_kernel
+from .measurement import Prediction, h_feature_kernel
+from .quaternion import rotation_derivatives_kernel, rotation_kernel
+from .state import POSE_DIM, SlamNumericalError, State
+
+
+@dataclass
+class RansacResult:
+    """Per match (m,): ``low`` (a low-innovation inlier of the best hypothesis), ``rescued``
+    (a high-innovation inlier), ``used`` (either, and its update was applied); and the counts."""
+
+    low: np.ndarray
+    rescued: np.ndarray
+    used: np.ndarray
+    hypotheses: int
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.used.sum())
+
+    @property
+    def n_outliers(self) -> int:
+        return int((~self.used).sum())
+
+
+@compiled_kernel(h_feature_kernel, rotation_kernel, rotation_derivatives_kernel)
+def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f, S, order, threshold, max_hyp,
+                       confidence, model, lens):
+    """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried."""
+    n = x.shape[0]
+    m = ks.shape[0]
+    best = np.zeros(m, dtype=np.bool_)
+    best_count = -1
+    best_cost = np.inf
+    n_hyp = max_hyp
+    tried = 0
+    xj = np.empty(n)
+    idx = np.empty(13, np.intp)
+    h = np.zeros((2, 13))
+    uv = np.empty(2)
+    Hc_tmp = np.empty((2, POSE_DIM))
+    Hf_tmp = np.empty((2, 6))
+    inl = np.zeros(m, dtype=np.bool_)
+    th2 = threshold * threshold
+    for t in range(order.shape[0]):
+        if tried >= n_hyp:
+            break
+        tried += 1
+        j = order[t]
+        k = ks[j]
+        d = dims[kinds[k]]
+        c = POSE_DIM + d
+        for a in range(POSE_DIM):
+            idx[a] = a
+            h[0, a] = H_c[j, 0, a]
+            h[1, a] = H_c[j, 1, a]
+        for a in range(d):
+            idx[POSE_DIM + a] = starts[k] + a
+            h[0, POSE_DIM + a] = H_f[j, 0, a]
+            h[1, POSE_DIM + a] = H_f[j, 1, a]
+        # K_j nu_j = P H^T S^-1 nu_j
+        s00, s01, s11 = S[j, 0, 0], S[j, 0, 1], S[j, 1, 1]
+        det = s00 * s11 - s01 * s01
+        if not det > 0:
+            continue
+        nu0, nu1 = z[j, 0] - uv0[j, 0], z[j, 1] - uv0[j, 1]
+        w0 = (s11 * nu0 - s01 * nu1) / det
+        w1 = (-s01 * nu0 + s00 * nu1) / det
+        for r in range(n):
+            acc = 0.0
+            for u in range(c):
+                acc += P[r, idx[u]] * (h[0, u] * w0 + h[1, u] * w1)
+            xj[r] = x[r] + acc
+        R = rotation_kernel(xj[3], xj[4], xj[5], xj[6])
+        dR = rotation_derivatives_kernel(xj[3], xj[4], xj[5], xj[6])
+        count = 0
+        cost = 0.0
+        for i in range(m):
+            ki = ks[i]
+            ok = h_feature_kernel(kinds[ki], xj, starts[ki], anchors[ki], R, dR, model, lens, uv, Hc_tmp, Hf_tmp)
+            e2 = (z[i, 0] - uv[0]) ** 2 + (z[i, 1] - uv[1]) ** 2 if ok else np.inf
+            inl[i] = e2 < th2
+            if inl[i]:
+                count += 1
+                cost += e2
+            else:
+                cost += th2
+        if count > best_count or (count == best_count and cost < best_cost):
+            best_count = count
+            best_cost = cost
+            best[:] = inl
+            w = count / m
+            if w >= 1.0:
+                n_hyp = tried
+            elif w > 0:
+                n_hyp = min(max_hyp, int(math.ceil(math.log(1.0 - confidence) / math.log(1.0 - w))))
+    return best, tried
+
+
+def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraIntrinsics, R_pix,
+                     pred: Prediction, S: np.ndarray, threshold_px: float, max_hypotheses: int,
+                     confidence: float, rescue_chi2: float, rng: np.random.Generator,
+                     r_scale: np.ndarray | None = None) -> RansacResult:
+    """Select the inliers among the matches ``z`` (m, 2) px of the distinct features ``ks`` and
+    update the state with them, in place (the three steps of the module docstring).
+
+    ``pred``, ``S`` : the features' predictions and innovation covariances at the prior (the
+    ones the search used). ``r_scale`` (m,) : each measurement's noise variance as a multiple of
+    ``R_pix`` (default 1). An update refused for numerical reasons leaves the state as it was
+    and its matches unused.
+    """
+    ks = np.asarray(ks, np.intp)
+    m = len(ks)
+    r_scale = np.ones(m) if r_scale is None else np.asarray(r_scale, float)
+    low = np.zeros(m, bool)
+    rescued = np.zeros(m, bool)
+    if m == 0:
+        return RansacResult(low, rescued, low.copy(), 0)
+    model, lens = lens_kernel_args(cam)
+    order = rng.permutation(m).astype(np.intp)
+    low, tried = _hypotheses_kernel(state.x, state.P, state.kinds, state.starts, state.anchors, FEATURE_DIMS, ks,
+                                    np.ascontiguousarray(z, float), np.ascontiguousarray(pred.uv),
+                                    np.ascontiguousarray(pred.H_c), np.ascontiguousarray(pred.H_f),
+                                    np.ascontiguousarray(S), order, float(threshold_px), int(max_hypotheses),
+                                    float(confidence), model, lens)
+    if m == 1:
+        low[:] = True                              # one match inside its own ellipse: nothing to vote
+    used = np.zeros(m, bool)
+    fu = FrameUpdate(state, cam, R_pix)
+    if low.any():
+        sel = np.flatnonzero(low)
+        sub = Prediction(ks[sel], pred.uv[sel], pred.H_c[sel], pred.H_f[sel], pred.valid[sel])
+        try:
+            fu.update(ks[sel], z[sel], sub, r_scale[sel])
+            used[sel] = True
+        except SlamNumericalError:
+            return RansacResult(low, rescued, used, tried)
+    rest = np.flatnonzero(~low)
+    if len(rest) and used.any():
+        p2 = fu.predict(ks[rest])
+        S2 = fu.innovation_covariances(p2, r_scale[rest])
+        nu = z[rest] - p2.uv
+        ok = p2.valid & np.isfinite(S2).all(axis=(1, 2))
+        d2 = np.full(len(rest), np.inf)
+        if ok.any():
+            d2[ok] = np.einsum("ni,nij,nj->n", nu[ok], np.linalg.inv(S2[ok]), nu[ok])
+        good = ok & (d2 < rescue_chi2)
+        if good.any():
+            sel = rest[good]
+            sub = Prediction(ks[sel], p2.uv[good], p2.H_c[good], p2.H_f[good], p2.valid[good])
+            try:
+                fu.update(ks[sel], z[sel], sub, r_scale[sel])
+                rescued[sel] = True
+                used[sel] = True
+            except SlamNumericalError:
+                pass
+    try:
+        fu.commit()
+    except SlamNumericalError:
+        used[:] = False
+        rescued[:] = False
+    return RansacResult(low, rescued, used, tried)

@@ -1,0 +1,249 @@
+"""Start-up from the known target, with no ground truth anywhere.
+
+``target.toml``'s pixels are a person's clicks: a few pixels off. The start-up finds each known
+point in the first image itself (the strongest corner within ``click_search_px`` of the click,
+refined to sub-pixel precision by OpenCV's ``cornerSubPix``), then checks that the refined
+points make one consistent camera pose (PnP through the lens model, small reprojection error),
+and refuses with a message naming the problem when they do not.
+
+The camera's starting uncertainty is what the target can tell: the pose's covariance is
+``sigma^2 (J^T J)^-1`` with ``J`` the reprojection Jacobian with respect to the pose (rotation
+as a small rotation in the camera frame, position in the world frame) and ``sigma`` the refined
+corners' pixel accuracy. A small, far, nearly frontal planar target leaves this covariance long
+along the rotation-translation ambiguity, so the natural features can correct it; and a planar
+target has two PnP poses (IPPE's pair, the planar pose ambiguity): when the second explains the
+corners nearly as well (likelihood ratio under ``ambiguity_ratio``), both are kept as hypotheses
+until the map separates them (system.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinematics.camera import CameraIntrinsics, in_image, project, undistort
+
+from ..sequence import Target
+from .quaternion import dq_dtheta_right, quat_from_rotation
+
+
+class SlamStartError(ValueError):
+    """The target cannot start SLAM (not found, not consistent, degenerate); the message says
+    why and what to check."""
+
+
+@dataclass(frozen=True)
+class RefinedTarget:
+    """xyz (n, 3) world, m; uv (n, 2) the refined pixels; moved_px (n,) how far each moved from
+    its click."""
+
+    xyz: np.ndarray
+    uv: np.ndarray
+    moved_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class PoseHypothesis:
+    """A camera pose from the target: R_world_cam (3, 3), r (3,) optical centre (world, m),
+    cov (6, 6) of (small rotation in the camera frame, rad; position, m), and its reprojection
+    chi-square (sum of squared residuals over sigma^2) and RMS residual, px."""
+
+    R_world_cam: np.ndarray
+    r: np.ndarray
+    cov: np.ndarray
+    chi2: float
+    rms_px: float
+
+    def camera_prior(self, v_sigma: float, w_sigma: float, cam_dim: int = 13) -> tuple[np.ndarray, np.ndarray]:
+        """The camera block (at rest) and its covariance for this pose: position and quaternion
+        from ``cov`` (rotation mapped by dq/dtheta), velocities with the given standard
+        deviations, any further entries (bias states) left zero for the caller."""
+        q = quat_from_rotation(self.R_world_cam)
+        x_v = np.zeros(cam_dim)
+        x_v[0:3], x_v[3:7] = self.r, q
+        G = np.zeros((7, 6))
+        G[0:3, 3:6] = np.eye(3)
+        G[3:7, 0:3] = dq_dtheta_right(q)
+        P = np.zeros((cam_dim, cam_dim))
+        P[:7, :7] = G @ self.cov @ G.T
+        P[7:10, 7:10] = np.eye(3) * v_sigma**2
+        P[10:13, 10:13] = np.eye(3) * w_sigma**2
+        return x_v, P
+
+
+def refine_clicks(grey: np.ndarray, target: Target, search_px: float) -> RefinedTarget:
+    """Each clicked pixel moved to the corner it was meant for: the strongest Shi-Tomasi corner
+    within ``search_px`` of the click, refined by ``cornerSubPix``. Raises
+    :class:`SlamStartError` for a click with no corner near it or off the image."""
+    img = np.ascontiguousarray(grey, np.float32)
+    H, W = img.shape
+    r = int(math.ceil(search_px))
+    pad = r + 6
+    refined, moved = [], []
+    for i, (u, v) in enumerate(np.asarray(target.uv, float)):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            raise SlamStartError(f"target.toml: point {i}'s uv is not a number; give its pixel in the first frame")
+        u0, v0 = int(round(u)), int(round(v))
+        if u0 - pad < 0 or v0 - pad < 0 or u0 + pad >= W or v0 + pad >= H:
+            raise SlamStartError(f"target.toml: point {i} at pixel ({u:.1f}, {v:.1f}) is at or beyond the image border; "
+                                 "the whole target must be in view in the first frame")
+        win = img[v0 - pad:v0 + pad + 1, u0 - pad:u0 + pad + 1]
+        resp = cv2.cornerMinEigenVal(win, blockSize=5, ksize=3)
+        yy, xx = np.mgrid[-pad:pad + 1, -pad:pad + 1]
+        resp[(xx + u0 - u) ** 2 + (yy + v0 - v) ** 2 > search_px ** 2] = 0.0
+        j = int(np.argmax(resp))
+        peak = resp.flat[j]
+        # A corner must stand out from the window's edges and flat parts (a click on a plain
+        # surface or an edge gives a weak response).
+        if not peak > 0 or peak < 4.0 * np.median(cv2.cornerMinEigenVal(win, blockSize=5, ksize=3)) + 1e-3:
+            raise SlamStartError(f"target.toml: no corner within {search_px:g} px of point {i}'s click at "
+                                 f"({u:.1f}, {v:.1f}); click the target's corner in the first frame")
+        cy, cx = divmod(j, resp.shape[1])
+        p = np.array([[[u0 - pad + cx, v0 - pad + cy]]], np.float32)
+        cv2.cornerSubPix(img, p, (4, 4), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 0.01))
+        q = p.reshape(2).astype(float)
+        d = float(np.hypot(q[0] - u, q[1] - v))
+        if not d <= search_px + 1.0:
+            raise SlamStartError(f"target.toml: point {i}'s corner could not be located near its click at "
+                                 f"({u:.1f}, {v:.1f}) (the refinement wandered {d:.1f} px); click closer to it")
+        refined.append(q)
+        moved.append(d)
+    return RefinedTarget(np.asarray(target.xyz, float), np.array(refined), np.array(moved))
+
+
+def _pose_residuals(cam: CameraIntrinsics, xyz, uv, R_wc, r) -> np.ndarray:
+    P_cam = (xyz - r) @ R_wc
+    return (project(cam, P_cam) - uv).reshape(-1)
+
+
+def _pose_jacobian(cam: CameraIntrinsics, xyz, R_wc, r, eps: float = 1e-6) -> np.ndarray:
+    """(2n, 6) d(pixels)/d(theta, r): theta a small rotation in the camera frame
+    (R = R_wc Exp(theta)), r the world position (central differences through the lens model)."""
+    J = np.zeros((2 * len(xyz), 6))
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = eps
+        out = []
+        for s in (1, -1):
+            Rp = R_wc @ Rotation.from_rotvec(s * d[:3]).as_matrix()
+            out.append(project(cam, (xyz - (r + s * d[3:])) @ Rp).reshape(-1))
+        J[:, i] = (out[0] - out[1]) / (2 * eps)
+    return J
+
+
+def pose_hypotheses(cam: CameraIntrinsics, xyz: np.ndarray, uv: np.ndarray, sigma_px: float,
+                    ambiguity_ratio: float) -> list[PoseHypothesis]:
+    """The camera poses the target's points ``xyz`` (n, 3) seen at ``uv`` (n, 2) admit, best
+    first: one, or two for a planar target whose second IPPE pose fits within the likelihood
+    ratio ``ambiguity_ratio`` (``exp((chi2_2 - chi2_1) / 2)``) of the first."""
+    xy = undistort(cam, uv)
+    if not np.isfinite(xy).all():
+        raise SlamStartError("target.toml: a target point's pixel has no ray through the lens model")
+    if len(xyz) < 4:
+        raise SlamStartError(f"target.toml has {len(xyz)} points; SLAM needs at least 4 known points")
+    c = xyz - xyz.mean(axis=0)
+    sv = np.linalg.svd(c, compute_uv=False)
+    if sv[1] < 1e-3 * max(sv[0], 1e-12):
+        raise SlamStartError("target.toml: the known points are (nearly) on a line; give 4 or more points spanning a plane")
+    planar = sv[2] < 1e-3 * sv[0]
+    solve = _planar_poses if planar else _general_pose
+    raw = solve(xyz, xy)
+    if not raw:
+        raise SlamStartError("target.toml: PnP found no camera pose for the target points; check xyz and uv")
+    hyps = []
+    for R_wc, r in raw:
+        res = _pose_residuals(cam, xyz, uv, R_wc, r)
+        if not np.isfinite(res).all() or np.any((xyz - r) @ R_wc[:, 2] <= 0):
+            continue
+        chi2 = float(res @ res) / sigma_px**2
+        hyps.append(PoseHypothesis(R_wc, r, _sampled_covariance(cam, xyz, uv, R_wc, r, sigma_px, solve), chi2,
+                                   float(np.sqrt(np.mean(res**2)) * math.sqrt(2))))
+    if not hyps:
+        raise SlamStartError("target.toml: PnP found no camera pose in front of the target points; check xyz and uv")
+    hyps.sort(key=lambda h: h.chi2)
+    best = hyps[0]
+    return [best] + [h for h in hyps[1:] if 0.5 * (h.chi2 - best.chi2) < math.log(ambiguity_ratio)]
+
+
+def _planar_poses(xyz: np.ndarray, xy: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Both IPPE poses (R_world_cam, r) of coplanar points ``xyz`` seen at normalised ``xy``."""
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(xyz.astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+                                                 flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        return []
+    return [_pose(rv, tv) for rv, tv in zip(rvecs, tvecs)]
+
+
+def _general_pose(xyz: np.ndarray, xy: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    try:
+        ok, rvec, tvec = cv2.solvePnP(xyz.astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+                                      flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return []
+    return [_pose(rvec, tvec)] if ok else []
+
+
+def _pose(rvec, tvec) -> tuple[np.ndarray, np.ndarray]:
+    R_cw, _ = cv2.Rodrigues(np.asarray(rvec, float))
+    return R_cw.T, -R_cw.T @ np.asarray(tvec, float).ravel()
+
+
+#: Draws of pixel noise for a start pose's covariance, and their fixed seed (repeatable starts).
+COVARIANCE_DRAWS, COVARIANCE_SEED = 100, 12345
+
+
+def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float, solve) -> np.ndarray:
+    """(6, 6) covariance of (small rotation in the camera frame, rad; position, m) of the pose
+    the target's pixels give, by propagating their noise ``sigma_px`` through PnP itself: the
+    pixels are perturbed, the pose solved again and the solution nearest (R_wc, r) kept. The
+    reprojection Jacobian's ``sigma^2 (J^T J)^-1`` is this covariance to first order, but a
+    small, far, nearly frontal target's pose depends on its pixels far from linearly (the
+    rotation-translation ambiguity), and there the linear covariance is several times too
+    small, and PnP flips between the two planar poses from one draw to the next; the sampled
+    covariance (each draw's best-fitting pose, about this one) holds the spread PnP really has.
+    The draws' seed is fixed, so a start is repeatable."""
+    rng = np.random.default_rng(COVARIANCE_SEED)
+    D = []
+    for _ in range(COVARIANCE_DRAWS):
+        xy = undistort(cam, uv + rng.normal(0.0, sigma_px, uv.shape))
+        if not np.isfinite(xy).all():
+            continue
+        best, best_e = None, np.inf
+        for R2, r2 in solve(xyz, xy):          # the pose PnP would pick from these pixels
+            e = _pose_residuals(cam, xyz, uv, R2, r2)
+            e = float(e @ e) if np.isfinite(e).all() else np.inf
+            if e < best_e:
+                best, best_e = np.r_[Rotation.from_matrix(R_wc.T @ R2).as_rotvec(), r2 - r], e
+        if best is not None:
+            D.append(best)
+    D = np.array(D)
+    J = _pose_jacobian(cam, xyz, R_wc, r)
+    linear = sigma_px**2 * np.linalg.pinv(J.T @ J)
+    if len(D) < 20:
+        return linear
+    cov = D.T @ D / len(D)                 # about the hypothesis itself: spread and bias together
+    return 0.5 * (cov + cov.T) + 1e-3 * linear
+
+
+def start_hypotheses(cam: CameraIntrinsics, grey: np.ndarray, target: Target, search_px: float, sigma_px: float,
+                     max_rms_px: float, ambiguity_ratio: float) -> tuple[RefinedTarget, list[PoseHypothesis]]:
+    """Refine the clicks, fit the poses and check them: the refined target and the pose
+    hypotheses (best first). Raises :class:`SlamStartError` if the corners do not make one
+    consistent pose (RMS residual above ``max_rms_px``) or leave the image."""
+    ref = refine_clicks(grey, target, search_px) if search_px > 0 else \
+        RefinedTarget(np.asarray(target.xyz, float), np.asarray(target.uv, float), np.zeros(len(target.xyz)))
+    hyps = pose_hypotheses(cam, ref.xyz, ref.uv, sigma_px, ambiguity_ratio)
+    best = hyps[0]
+    if best.rms_px > max_rms_px:
+        raise SlamStartError(f"target.toml: the target's corners, found in the first image, do not fit one camera pose "
+                             f"(reprojection RMS {best.rms_px:.1f} px > {max_rms_px:g}); check that the points' order "
+                             "in xyz matches their clicks and that xyz is the printed target's geometry")
+    P_cam = (ref.xyz - best.r) @ best.R_world_cam
+    if not in_image(cam, project(cam, P_cam)).all():
+        raise SlamStartError("target.toml: the target's points do not all project into the first image")
+    return ref, hyps

@@ -1,0 +1,200 @@
+"""Saving a map and starting from it (map_io.py): save then load round-trips every array and
+feature record of a map mixing points and inverse-depth features; the loaded map makes a filter
+state and a session that starts lost in the map's frame; a map from another camera model, a
+truncated file, a file that is not a map, a newer format version and inconsistent arrays are
+each refused with MapFileError naming the file and the problem, in one line; a failed save
+leaves the previous map as it was."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+
+import test_slam_startup as su
+from kinematics.camera import CameraIntrinsics
+from runtime.sequence import Target
+from runtime.slam import map_io
+from runtime.slam.config import MapSettings, SlamConfig
+from runtime.slam.features import INVERSE_DEPTH, POINT
+from runtime.slam.filter import convert_to_point
+from runtime.slam.map_io import MapFileError, load_map, save_map
+from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED
+from runtime.slam.system import MonoSLAM
+from runtime.slam.templates import MapFeature
+
+CAM = su.CAM
+#: What a saved map keeps of each feature (the rest is the session's own: cached rays, the last
+#: frame it was seen in, its latest innovations).
+SAVED_FIELDS = ("id", "template", "first_frame", "r0", "known", "attempts", "successes", "patch", "uv0", "R0",
+                "normal", "normal_from_map")
+
+
+@pytest.fixture(scope="module")
+def slam() -> MonoSLAM:
+    """A running SLAM on the synthetic target scene: the four target points, natural features
+    started as inverse-depth rays, two of them converted to points."""
+    img, uv = su.scene("near oblique")
+    s = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
+    s.start(img, 0.0, Target(su.RECT, uv + 2.0))
+    for k in range(1, 6):
+        s.process(img, k / 30)
+    ids = np.flatnonzero(s.state.kinds == INVERSE_DEPTH)
+    assert len(ids) >= 4
+    for k in ids[:2]:
+        convert_to_point(s.state, int(k))
+    assert set(s.state.kinds.tolist()) == {POINT, INVERSE_DEPTH} and s.localised
+    return s
+
+
+
+def assert_feature_equal(a: MapFeature, b: MapFeature) -> None:
+    for name in SAVED_FIELDS:
+        va, vb = getattr(a, name), getattr(b, name)
+        if isinstance(va, np.ndarray) or isinstance(vb, np.ndarray):
+            assert va is not None and vb is not None, name
+            np.testing.assert_array_equal(va, vb, err_msg=name)
+        else:
+            assert va == vb, name
+
+
+def test_save_then_load_round_trips_every_array_and_record(slam, tmp_path):
+    path = save_map(tmp_path / "maps" / "bench", slam)
+    assert path == tmp_path / "maps" / "bench.npz" and path.is_file()
+    assert [p.name for p in path.parent.iterdir()] == ["bench.npz"]          # no temporary left
+    saved = load_map(path, CAM)
+    st = slam.state
+    cd = st.cam_dim
+    np.testing.assert_array_equal(saved.y, st.x[cd:])
+    np.testing.assert_array_equal(saved.P, st.P[cd:, cd:])
+    np.testing.assert_array_equal(saved.kinds, st.kinds)
+    np.testing.assert_array_equal(saved.anchors, st.anchors)
+    np.testing.assert_array_equal(saved.T_world_cam, slam.T_world_cam())
+    assert saved.camera == CAM
+    assert len(saved.features) == len(slam.features) == st.n_features
+    for a, b in zip(saved.features, slam.features):
+        assert_feature_equal(a, b)
+    assert any(f.patch is not None for f in saved.features) and any(f.known for f in saved.features)
+    # A second save of the loaded map's session gives the same file contents.
+    assert load_map(save_map(tmp_path / "again.npz", slam)).y.tobytes() == saved.y.tobytes()
+
+
+@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
+def test_a_loaded_map_makes_a_state_and_a_session_that_starts_lost(slam, tmp_path, cam_dim):
+    saved = load_map(save_map(tmp_path / "m.npz", slam), CAM)
+    cfg = SlamConfig()
+    s = saved.state_with_camera(cam_dim, cfg)
+    assert s.cam_dim == cam_dim and np.array_equal(s.kinds, saved.kinds)
+    np.testing.assert_array_equal(s.x[cam_dim:], saved.y)
+    np.testing.assert_array_equal(s.P[cam_dim:, cam_dim:], saved.P)
+    assert not s.P[:cam_dim, cam_dim:].any()                 # the camera knows nothing of the map
+    np.testing.assert_allclose(s.r, saved.T_world_cam[:3, 3])
+    assert np.sqrt(s.P[0, 0]) >= 0.5                          # too wide to search: it must re-localise
+    if cam_dim == CAMERA_DIM_BIASED:
+        np.testing.assert_allclose(np.diag(s.P)[13:19], [cfg.gyro_bias_sigma0**2] * 3 + [cfg.accel_bias_sigma0**2] * 3)
+    session = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
+    session.start_from_map(saved, 10.0)
+    assert session.lost and not session.localised and np.isnan(session.T_world_cam()).all()
+    assert [f.id for f in session.features] == [f.id for f in saved.features]
+    assert all(f.attempts == 0 and f.successes == 0 for f in session.features)
+    assert session.new_id() == max(f.id for f in saved.features) + 1
+
+
+def write_npz(path, arrays: dict) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    path.write_bytes(buf.getvalue())
+
+
+def arrays_of(path) -> dict:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def header(version=map_io.VERSION, fmt=map_io.FORMAT, **extra) -> np.ndarray:
+    return np.frombuffer(json.dumps({"format": fmt, "version": version, **extra}).encode(), np.uint8)
+
+
+def bad_files(slam, tmp_path) -> dict:
+    """A good map and variants of it, each broken in one way."""
+    good = save_map(tmp_path / "good.npz", slam)
+    data = good.read_bytes()
+    a = arrays_of(good)
+    h = json.loads(bytes(a["header"]).decode())
+    files = {"good": good}
+    files["truncated"] = tmp_path / "truncated.npz"
+    files["truncated"].write_bytes(data[:len(data) // 2])
+    files["text"] = tmp_path / "notes.npz"
+    files["text"].write_text("# not a map\n")
+    files["no header"] = tmp_path / "no_header.npz"
+    write_npz(files["no header"], {k: v for k, v in a.items() if k != "header"})
+    files["other format"] = tmp_path / "other_format.npz"
+    write_npz(files["other format"], {**a, "header": header(fmt="something-else")})
+    files["newer"] = tmp_path / "newer.npz"
+    rest = {k: v for k, v in h.items() if k not in ("format", "version")}
+    write_npz(files["newer"], {**a, "header": header(version=map_io.VERSION + 1, **rest)})
+    files["inconsistent"] = tmp_path / "inconsistent.npz"
+    write_npz(files["inconsistent"], {**a, "P": a["P"][:-1, :-1]})
+    files["non-finite"] = tmp_path / "non_finite.npz"
+    y = a["y"].copy()
+    y[0] = np.nan
+    write_npz(files["non-finite"], {**a, "y": y})
+    files["missing"] = tmp_path / "missing.npz"
+    return files
+
+
+def assert_refused(path, cam, message) -> None:
+    with pytest.raises(MapFileError, match=message) as e:
+        load_map(path, cam)
+    text = str(e.value)
+    assert text.startswith(str(path)) and "\n" not in text, text
+
+
+def test_files_that_are_not_usable_maps_are_refused_in_one_line(slam, tmp_path):
+    f = bad_files(slam, tmp_path)
+    for name, message in [
+        ("truncated", r"corrupt or truncated map file"),
+        ("text", r"corrupt or truncated map file"),
+        ("no header", r"not a wvr SLAM map \(no header\)"),
+        ("other format", r"not a wvr SLAM map \(format 'something-else'\)"),
+        ("newer", rf"map format version {map_io.VERSION + 1} is newer than this wvr reads \({map_io.VERSION}\)"),
+        ("missing", r"no such map file"),
+    ]:
+        assert_refused(f[name], CAM, message)
+        assert_refused(f[name], None, message)
+
+
+def test_maps_of_another_camera_or_with_broken_arrays_are_refused_in_one_line(slam, tmp_path):
+    f = bad_files(slam, tmp_path)
+    other_cam = replace(CAM, fx=CAM.fx * 1.1, fy=CAM.fy * 1.1)
+    fisheye = CameraIntrinsics(width=CAM.width, height=CAM.height, fx=CAM.fx, fy=CAM.fy, cx=CAM.cx, cy=CAM.cy,
+                               model="fisheye", k1=0.01)
+    assert_refused(f["good"], other_cam, r"built with another camera \(fx, fy differ from this sequence's camera.toml\)")
+    assert_refused(f["good"], fisheye, r"built with another camera \(model, .*k1")
+    assert_refused(f["inconsistent"], CAM, r"the map's arrays are inconsistent")
+    assert_refused(f["non-finite"], CAM, r"the map's arrays are inconsistent")
+    assert load_map(f["good"]).camera == CAM            # without a camera to check against
+
+
+def test_a_failed_save_leaves_the_previous_map(slam, tmp_path, monkeypatch):
+    path = save_map(tmp_path / "m.npz", slam)
+    before = path.read_bytes()
+
+    def killed(fh, **arrays):
+        fh.write(b"PK\x03\x04 half a zip")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(map_io.np, "savez_compressed", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_map(path, slam)
+    assert path.read_bytes() == before
+    assert zipfile.is_zipfile(path)
+
+
+def test_saved_fields_are_map_features_fields():
+    names = {f.name for f in fields(MapFeature)}
+    assert set(SAVED_FIELDS) <= names

@@ -1,0 +1,194 @@
+"""Start-up from the known target (startup.py) on ray-cast images of a printed rectangle (the
+twin's black rectangle on a white card, 21 x 15 cm) whose corners' true pixels are known: a
+person's clicks 2-3 px off are refined to within 0.3 px, a click on a plain area or pixels that
+fit no pose are refused, the pose covariance is honest (Monte Carlo NEES against its chi-square
+band), and a small far frontal target keeps both planar poses while a near oblique one keeps one."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import slam_testing as st
+from runtime.sequence import Target
+from runtime.slam.config import MapSettings
+from runtime.slam.quaternion import quat_to_rotation
+from runtime.slam.startup import SlamStartError, pose_hypotheses, refine_clicks, start_hypotheses
+from runtime.slam.system import MonoSLAM
+
+CAM = st.PINHOLE
+S = MapSettings()
+RECT = st.rectangle(0.21, 0.15)
+CARD_MARGIN = 0.03
+
+
+def viewpoint(dist: float, elevation_deg: float, azimuth_deg: float = -80.0) -> tuple[np.ndarray, np.ndarray]:
+    """(R_world_cam, r): a camera ``dist`` m from the target's centre at ``elevation_deg`` above
+    its plane (90: frontal), looking at it."""
+    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
+    r = dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return st.look_at(r, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), r
+
+
+VIEWS = {
+    "near oblique": viewpoint(0.45, 50.0),        # 0.45 m, 40 degrees from frontal
+    "far oblique": viewpoint(1.3, 55.0, -60.0),
+    "far frontal": viewpoint(1.3, 87.0),          # 1.3 m, 3 degrees from frontal: ~80 px wide
+}
+
+
+@lru_cache(maxsize=None)
+def scene(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The image of a view (textured background) and the corners' true pixels."""
+    R, r = VIEWS[name]
+    img = st.render_target_scene(CAM, R, r, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
+    return img, st.pixels(CAM, R, r, RECT)
+
+
+def clicks(uv: np.ndarray, rng, lo: float = 2.0, hi: float = 3.0) -> np.ndarray:
+    """The corners as a person clicks them: each ``lo`` to ``hi`` px off in a random direction."""
+    a = rng.uniform(0, 2 * np.pi, len(uv))
+    return uv + rng.uniform(lo, hi, (len(uv), 1)) * np.column_stack([np.cos(a), np.sin(a)])
+
+
+# -- finding the corners -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("view", list(VIEWS))
+def test_clicks_2_to_3_px_off_are_refined_to_0_3_px(view):
+    img, uv = scene(view)
+    rng = np.random.default_rng(1)
+    errors = []
+    for _ in range(6):
+        z = clicks(uv, rng)
+        ref = refine_clicks(img, Target(RECT, z), S.click_search_px)
+        errors.append(np.linalg.norm(ref.uv - uv, axis=1))
+        np.testing.assert_allclose(ref.moved_px, np.linalg.norm(ref.uv - z, axis=1), atol=1e-9)
+        assert np.array_equal(ref.xyz, RECT)
+    errors = np.array(errors)
+    print(f"\n{view}: refined corners {np.median(errors):.3f} px from the truth (median), worst {errors.max():.3f}")
+    assert errors.max() < 0.3
+    # The clicks were 2-3 px off: the refinement moved them that far.
+    assert np.median(errors) < 0.25
+
+
+def test_refusals_name_the_problem():
+    img, uv = scene("near oblique")
+    card_corners = st.pixels(CAM, *VIEWS["near oblique"], st.rectangle(0.21 + 2 * CARD_MARGIN, 0.15 + 2 * CARD_MARGIN))
+    cases = {
+        # A click on the middle of the black rectangle: no corner there.
+        "plain": (RECT, np.r_[uv[:3], uv.mean(axis=0, keepdims=True)], r"no corner within 6 px of point 3's click"),
+        # One click on the card's outer corner instead of the rectangle's: a corner, but the
+        # four make no consistent pose.
+        "card corner": (RECT, np.r_[card_corners[:1], uv[1:]],
+                        r"do not fit one camera pose \(reprojection RMS [0-9.]+ px > 1.5\)"),
+        # The card's corners given as the rectangle's geometry: a wrong print size.
+        "wrong size": (st.rectangle(0.21, 0.10), uv, r"do not fit one camera pose"),
+        # xyz in another order than the clicks.
+        "order": (RECT[[1, 0, 2, 3]], uv, r"(no camera pose in front|do not fit one camera pose)"),
+        "border": (RECT, np.r_[uv[:3], [[2.0, 100.0]]],
+                   r"point 3 at pixel \(2.0, 100.0\) is at or beyond the image border"),
+        "line": (np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.3, 0, 0]], float), uv, r"on a line"),
+    }
+    for name, (xyz, z, message) in cases.items():
+        with pytest.raises(SlamStartError, match=message):
+            start_hypotheses(CAM, img, Target(xyz, z), S.click_search_px, S.start_pixel_sigma, S.start_max_rms_px,
+                             S.ambiguity_ratio)
+    # MonoSLAM.start refuses the same way, and has not started.
+    slam = MonoSLAM(CAM)
+    with pytest.raises(SlamStartError, match="no corner within"):
+        slam.start(img, 0.0, Target(RECT, cases["plain"][1]))
+    assert not slam.started
+    # A plain image, whatever the clicks.
+    with pytest.raises(SlamStartError, match="no corner within"):
+        refine_clicks(np.full_like(img, 128), Target(RECT, uv), S.click_search_px)
+
+
+# -- the pose and its uncertainty --------------------------------------------------------------
+
+def pose_nees(view: str, trials: int, seed: int, sigma_px: float = 0.5, nearest: bool = False) -> np.ndarray:
+    """NEES (6 dof: small rotation in the camera frame, position) of the best pose hypothesis (or
+    the one nearest the truth) over ``trials`` draws of pixel noise ``sigma_px`` on the true
+    corners, against the hypothesis' own covariance."""
+    R_true, r_true = VIEWS[view]
+    uv = st.pixels(CAM, R_true, r_true, RECT)
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(trials):
+        hyps = pose_hypotheses(CAM, RECT, uv + rng.normal(0, sigma_px, uv.shape), sigma_px, S.ambiguity_ratio)
+        nees = []
+        for h in hyps:
+            e = np.r_[Rotation.from_matrix(h.R_world_cam.T @ R_true).as_rotvec(), r_true - h.r]
+            nees.append(e @ np.linalg.solve(h.cov, e))
+        out.append(min(nees) if nearest else nees[0])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("view", ["near oblique", "far oblique"])
+def test_pose_covariance_is_honest(view):
+    nees = pose_nees(view, 200, 3)
+    lo, hi = st.chi2_band(6, len(nees))
+    print(f"\n{view}: pose NEES {nees.mean():.2f}, 95% band [{lo:.2f}, {hi:.2f}]")
+    assert lo < nees.mean() < hi
+    # A covariance off by a factor of 2 in standard deviation is far outside.
+    assert not (lo < nees.mean() / 4 < hi) and not (lo < 4 * nees.mean() < hi)
+
+
+@pytest.mark.xfail(strict=True, reason="startup.pose_hypotheses' covariance (sigma^2 (J^T J)^-1 at each IPPE pose) "
+                   "is about 6x overconfident for a small, far, nearly frontal target (NEES ~35 for 6 dof at 1.3 m, "
+                   "3 degrees from frontal, even scoring the hypothesis nearest the truth): the issue's 'start locks "
+                   "that error in with a small covariance' case")
+def test_pose_covariance_is_honest_for_a_far_frontal_target():
+    nees = pose_nees("far frontal", 200, 4, nearest=True)
+    lo, hi = st.chi2_band(6, len(nees))
+    print(f"\nfar frontal: pose NEES {nees.mean():.2f} (nearest hypothesis), 95% band [{lo:.2f}, {hi:.2f}]")
+    assert lo < nees.mean() < hi
+
+
+def test_a_far_frontal_target_keeps_both_planar_poses_a_near_oblique_one_keeps_one():
+    for view, expected in (("far frontal", 2), ("near oblique", 1), ("far oblique", 1)):
+        img, uv = scene(view)
+        R_true, r_true = VIEWS[view]
+        ref, hyps = start_hypotheses(CAM, img, Target(RECT, clicks(uv, np.random.default_rng(5))), S.click_search_px,
+                                     S.start_pixel_sigma, S.start_max_rms_px, S.ambiguity_ratio)
+        assert len(hyps) == expected, (view, [h.chi2 for h in hyps])
+        assert hyps[0].chi2 <= hyps[-1].chi2
+        # Each explains the refined corners (RMS within the start's limit) ...
+        assert all(h.rms_px < S.start_max_rms_px for h in hyps)
+        # ... one of them is the true pose, and they are genuinely different poses.
+        err = [np.linalg.norm(h.r - r_true) for h in hyps]
+        assert min(err) < 0.02 * np.linalg.norm(r_true)
+        if expected == 2:
+            assert np.linalg.norm(hyps[0].r - hyps[1].r) > 0.01
+            assert st.rotation_error_rad(hyps[0].R_world_cam, hyps[1].R_world_cam) > np.radians(2)
+        # MonoSLAM starts one track per hypothesis, each with the four target points.
+        slam = MonoSLAM(CAM)
+        slam.start(img, 0.0, Target(RECT, clicks(uv, np.random.default_rng(5))))
+        assert len(slam._tracks) == expected and slam.stats[0].hypotheses == expected
+        assert slam.state.n_features == 4 and all(f.known for f in slam.features)
+        np.testing.assert_allclose(slam.refined_target.uv, ref.uv, atol=1e-9)
+        T = slam.T_world_cam()
+        np.testing.assert_allclose(T[:3, 3], hyps[0].r, atol=1e-12)
+        np.testing.assert_allclose(T[:3, :3], hyps[0].R_world_cam, atol=1e-9)
+
+
+def test_camera_prior_maps_the_pose_covariance_into_the_state():
+    """The camera block's position and quaternion covariance is the pose covariance pushed
+    through q(R Exp(theta)): sampled poses' quaternions have that covariance."""
+    R, r = VIEWS["near oblique"]
+    h = pose_hypotheses(CAM, RECT, st.pixels(CAM, R, r, RECT), 0.5, S.ambiguity_ratio)[0]
+    x_v, P = h.camera_prior(0.3, 0.5, 19)
+    assert x_v.shape == (19,) and P.shape == (19, 19)
+    np.testing.assert_allclose(quat_to_rotation(x_v[3:7]), h.R_world_cam, atol=1e-12)
+    np.testing.assert_allclose(x_v[:3], h.r)
+    np.testing.assert_allclose(np.diag(P)[7:13], [0.09] * 3 + [0.25] * 3)
+    rng = np.random.default_rng(6)
+    d = rng.multivariate_normal(np.zeros(6), h.cov, 20000)
+    q = (Rotation.from_matrix(h.R_world_cam) * Rotation.from_rotvec(d[:, :3])).as_quat()[:, [3, 0, 1, 2]]
+    q *= np.sign(q @ x_v[3:7])[:, None]
+    samples = np.column_stack([h.r + d[:, 3:], q])
+    C = np.cov(samples.T)
+    np.testing.assert_allclose(C, P[:7, :7], atol=0.05 * np.abs(P[:7, :7]).max())
+    np.testing.assert_allclose(np.diag(C), np.diag(P[:7, :7]), rtol=0.05)
