@@ -56,24 +56,25 @@ from .startup import PoseHypothesis, RefinedTarget, SlamStartError, start_hypoth
 from .state import BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, POSE_DIM, SlamNumericalError, State, check_covariance
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
-__all__ = ["MonoSLAM", "FrameStats", "MapSettings", "SlamStartError", "MapFeature"]
+__all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
 
 #: Grid over the image for spreading the measured features (columns, rows).
 _GRID = (4, 3)
 
 
 @dataclass
-class FrameMeasurements:
-    """The last frame's active search, for displays and diagnostics: the features searched
-    ``ks`` (m,) (indices into the map when searched; ``ids`` stay valid after deletions), their predicted pixels ``uv`` (m, 2) and innovation covariances ``S`` (m, 2, 2)
-    at the prior, the matches ``z`` (m, 2) (NaN: not found) and which were used (inliers)."""
+class SearchView:
+    """The last frame's active search, for displays and diagnostics: the features searched, by
+    ``ids`` (m,) (stable across deletions; ``ks`` (m,) their map indices at the search), their
+    predicted pixels ``uv`` (m, 2) and innovation covariances ``S`` (m, 2, 2) at the prior, the
+    matches ``z`` (m, 2) (NaN: not found) and which were used (inliers)."""
 
-    ks: np.ndarray
     ids: np.ndarray
     uv: np.ndarray
     S: np.ndarray
     z: np.ndarray
     used: np.ndarray
+    ks: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,7 @@ class MapView:
     cov : (N, 3, 3) the points' covariances, m^2. kinds : (N,) "point" or "inverse-depth".
     known : (N,) target points. ``ray_origin`` (K, 3), ``ray_direction`` (K, 3) unit, ``ray_depth`` (K, 2) near and far, m: features still being initialised, as
     their rays (inverse-depth features' 95% depth interval, or particle rays), with ``ray_ids``
-    (K,). search : the last frame's active search (:class:`FrameMeasurements`) or None.
+    (K,). search : the last frame's active search (:class:`SearchView`) or None.
     """
 
     t: float
@@ -99,7 +100,23 @@ class MapView:
     ray_origin: np.ndarray
     ray_direction: np.ndarray
     ray_depth: np.ndarray
-    search: "FrameMeasurements | None"
+    search: SearchView | None
+
+    @property
+    def localised(self) -> bool:
+        return bool(np.isfinite(self.T_world_cam).all())
+
+    def point_of(self, feature_id: int) -> np.ndarray | None:
+        """(3,) the world point of feature ``feature_id``, or None if the map has no such id."""
+        k = np.flatnonzero(self.ids == int(feature_id))
+        return self.xyz[k[0]].copy() if len(k) else None
+
+    @classmethod
+    def empty(cls, t: float = 0.0) -> "MapView":
+        """The view before SLAM has started (or without SLAM)."""
+        z3 = np.zeros((0, 3))
+        return cls(t, np.full((4, 4), np.nan), np.zeros(0, int), z3, np.zeros((0, 3, 3)), (), np.zeros(0, bool),
+                   np.zeros(0, int), z3, z3, np.zeros((0, 2)), None)
 
 
 @dataclass
@@ -137,7 +154,7 @@ class _Track:
         self.low_matches = 0 if localised else slam.s.lost_after
         self.localised = localised
         self.score = 0.0
-        self.last: FrameMeasurements | None = None
+        self.last: SearchView | None = None
 
     @property
     def lost(self) -> bool:
@@ -287,8 +304,8 @@ class _Track:
         st.searched = m
         found = np.isfinite(z).all(axis=1)
         st.found = int(found.sum())
-        self.last = FrameMeasurements(pred.ks.copy(), np.array([self.features[k].id for k in pred.ks], int),
-                                      pred.uv.copy(), S.copy(), z, np.zeros(m, bool))
+        self.last = SearchView(np.array([self.features[k].id for k in pred.ks], int), pred.uv.copy(), S.copy(), z,
+                               np.zeros(m, bool), pred.ks.copy())
         if not found.any():
             self.score -= 0.5 * s.rescue_chi2 * m
             return visible

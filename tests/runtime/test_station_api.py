@@ -49,8 +49,11 @@ class StillRobot:
         # Coloured texture: SLAM matches its grey level, the operator's colour tracker its hue.
         self.image = cv2.GaussianBlur((rng.random((480, 640, 3)) * 255).astype(np.uint8), (5, 5), 1.5)
         uv = world_to_pixels(CAM, _T_world_cam(), TARGET_XYZ)
-        for p in uv:                                 # dark corners on the texture, for the templates
-            cv2.circle(self.image, tuple(int(round(c)) for c in p), 4, (0, 0, 0), -1)
+        # The printed target: a black rectangle on a white card (corners the start-up refines
+        # the clicks to), drawn with sub-pixel corners, on the texture.
+        card = world_to_pixels(CAM, _T_world_cam(), 1.4 * TARGET_XYZ)
+        cv2.fillConvexPoly(self.image, np.round(card * 16).astype(np.int32), (255, 255, 255), cv2.LINE_AA, 4)
+        cv2.fillConvexPoly(self.image, np.round(uv * 16).astype(np.int32), (0, 0, 0), cv2.LINE_AA, 4)
         self.target = Target(TARGET_XYZ, uv)
         self.commands: list[np.ndarray] = []
         self.t, self.q = 0.0, np.zeros(3)
