@@ -1,43 +1,182 @@
-"""SLAM benchmarks on twin recordings: ATE (no alignment and SE(3)-aligned) on 12 s
-workbench-static and walk sequences and on sit-down, and frames per second on one core
-(image decoding excluded: the per-frame time MonoSLAM reports). Targets (issue): ATE RMSE at
-most 1 cm on workbench-static and walk, 2 cm on sit-down; at least 300 frames per second
-(the EKF alone: bench_slam_speed.py)."""
+"""SLAM accuracy on the twin (issue 14's numbers), over seeds the SLAM was not tuned on.
 
+Every figure is ATE RMSE without alignment (the target fixes the frame), against the twin's
+ground truth, over the report seeds (default 2-6; the settings were chosen on seeds 0-1, see
+benchmarks/NOTES.md), given as median and worst per scenario:
+
+- camera only (the paper's system): the static scenes at most 1 cm; walk, sit-down and the
+  gaze-away scenarios at most 2 cm, never lost;
+- with the realistic IMU (a BMI088's errors, bias states in the filter): walk at most 1 cm;
+- a clicked start (target.toml's pixels 2-3 px off, refined on the image) against an exact
+  start (the true projections, taken as they are), camera only: within 10%;
+- map reuse: a map saved from one recording, a second recording of the same place with another
+  motion started from it with no target and no IMU: at most 2 cm, located within 1 s.
+
+Recordings are made once and kept in ``$WVR_BENCH_CACHE`` (default benchmarks/.cache).
+``python benchmarks/bench_slam.py [--seeds 2,3,4,5,6] [--part accuracy,imu,clicks,reuse] [--jobs 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
 import os
+import shutil
+import sys
 import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from runtime.sequence import open_sequence, read_trajectory  # noqa: E402
-from runtime.eval import map_errors, trajectory_errors  # noqa: E402
-from runtime.slam.run import run_slam  # noqa: E402
-from runtime.twin.recorder import record  # noqa: E402
-from wvr.cli import make_twin  # noqa: E402
+import numpy as np  # noqa: E402
+
+CACHE = Path(os.environ.get("WVR_BENCH_CACHE", Path(__file__).parent / ".cache"))
+REPORT_SEEDS = (2, 3, 4, 5, 6)
+STATIC = ("workbench-static", "kitchen-static", "office-static", "office-far-target")
+MOVING = ("walk", "sit-down", "workbench-gaze-away", "kitchen-gaze-away", "office-sit-down", "kitchen-walk")
+#: The issue's targets (cm); kitchen-walk and office-far-target are reported without one.
+TARGET_CM = {**{s: 1.0 for s in STATIC if s != "office-far-target"},
+             **{s: 2.0 for s in ("walk", "sit-down", "workbench-gaze-away", "kitchen-gaze-away", "office-sit-down")}}
+#: Map reuse: (mapping scenario, re-locating scenario), the same place (scene seed).
+REUSE = (("workbench-static", "sit-down"), ("workbench-static", "workbench-gaze-away"),
+         ("kitchen-static", "kitchen-walk"), ("office-static", "office-sit-down"))
 
 
-def main():
+def recording(scenario: str, seed: int, scene_seed: int | None = None) -> Path:
+    """The twin's recording of ``scenario`` (realistic camera and IMU, clicked target), made once."""
+    name = f"{scenario}-s{seed}" + (f"-place{scene_seed}" if scene_seed is not None else "")
+    path = CACHE / name
+    if (path / "rgb.txt").exists() and not (path / "INCOMPLETE").exists():
+        return path
+    from runtime.twin.recorder import record
+    from wvr.assemble import make_twin
+
+    CACHE.mkdir(parents=True, exist_ok=True)
+    tmp = CACHE / f".{name}.{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    twin = make_twin()
+    try:
+        record(twin, scenario, tmp, seed=seed, scene_seed=scene_seed, progress=False)
+    finally:
+        twin.close()
+    shutil.rmtree(path, ignore_errors=True)
+    tmp.rename(path)
+    return path
+
+
+def slam_ate(seq_path: Path, imu: bool = False, exact_start: bool = False, map_path: Path | None = None,
+             save_map: Path | None = None) -> dict:
+    """One SLAM run over a recording: ATE RMSE (cm, no alignment), lost, median ms per frame and,
+    for a saved map's run, when the camera was first located (s)."""
+    from runtime.eval import trajectory_errors
+    from runtime.sequence import load_target, open_sequence, read_trajectory, save_target
+    from runtime.slam.config import MapSettings
+    from runtime.slam.run import run_slam
+
+    settings = replace(MapSettings(), use_imu=imu)
     with tempfile.TemporaryDirectory() as d:
-        for scenario, seconds in (("workbench-static", 12.0), ("walk", 12.0), ("sit-down", 6.0)):
-            twin = make_twin()
-            try:
-                seq = record(twin, scenario, Path(d) / scenario, seconds=seconds, seed=0, progress=False, depth=True)
-            finally:
-                twin.close()
-            out = Path(d) / f"{scenario}-slam"
-            tot = run_slam(seq, out, progress=False)
-            sequence = open_sequence(seq)
-            e = trajectory_errors(read_trajectory(out / "trajectory.tum"), sequence.groundtruth)
-            print(f"{scenario:17s} {seconds:4.0f} s: ATE RMSE {100 * e.ate_rmse_m:5.2f} cm (max {100 * e.ate_max_m:5.2f}), "
-                  f"aligned {100 * e.ate_aligned_rmse_m:5.2f} cm; RPE 1 s {100 * e.rpe_trans_rmse_m:5.2f} cm "
-                  f"{e.rpe_rot_rmse_deg:4.2f} deg; {tot['mean_matched']:.1f} matched/frame; "
-                  f"{1000 / tot['mean_ms_per_frame']:.0f} frames/s mean, {1000 / tot['median_ms_per_frame']:.0f} median (whole frame, decoding "
-                  f"excluded); lost {tot['lost']}", flush=True)
-            m = map_errors(sequence, out / "map.csv")
-            print(f"{'':17s} map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
-                  f"median {100 * m.median_m:.2f} cm", flush=True)
+        seq = seq_path
+        if exact_start:
+            # A copy of the recording whose target.toml holds the true projections, taken as they
+            # are (no refinement): the exact start the clicked one is compared with.
+            seq = Path(d) / "exact"
+            shutil.copytree(seq_path, seq, ignore=shutil.ignore_patterns("rgb"))
+            (seq / "rgb").symlink_to((seq_path / "rgb").resolve())
+            save_target(load_target(seq_path / "target_truth.toml"), seq / "target.toml")
+            settings = replace(settings, click_search_px=0.0)
+        if map_path is not None:
+            seq = Path(d) / "no-target"
+            shutil.copytree(seq_path, seq, ignore=shutil.ignore_patterns("rgb", "target.toml", "imu.txt"))
+            (seq / "rgb").symlink_to((seq_path / "rgb").resolve())
+        out = Path(d) / "out"
+        t0 = time.time()
+        r = run_slam(seq, out, settings=settings, progress=False, map_path=map_path, save_map=save_map)
+        gt = open_sequence(seq_path).groundtruth
+        est = read_trajectory(out / "trajectory.tum") if r.first_localised_s is not None else None
+        e = trajectory_errors(est, gt) if est is not None and len(est.t) > 1 else None
+        return {"ate_cm": 100 * e.ate_rmse_m if e else float("inf"), "max_cm": 100 * e.ate_max_m if e else float("inf"),
+                "lost": r.lost, "lost_frames": r.lost_frames, "ms": r.median_ms_per_frame,
+                "located_s": r.first_localised_s, "matched": r.mean_matched, "wall_s": time.time() - t0}
+
+
+def _job(args):
+    kind, scenario, seed = args[:3]
+    if kind == "reuse":
+        mapping, relocating = scenario
+        place = 100 + seed
+        with tempfile.TemporaryDirectory() as d:
+            m = Path(d) / "map.npz"
+            first = slam_ate(recording(mapping, seed, place), save_map=m)
+            second = slam_ate(recording(relocating, seed + 50, place), map_path=m)
+        return kind, f"{mapping} -> {relocating}", seed, {"first": first, **second}
+    seq = recording(scenario, seed)
+    if kind == "camera":
+        return kind, scenario, seed, slam_ate(seq)
+    if kind == "imu":
+        return kind, scenario, seed, slam_ate(seq, imu=True)
+    if kind == "exact":
+        return kind, scenario, seed, slam_ate(seq, exact_start=True)
+    raise ValueError(kind)
+
+
+def _summary(rows: list[dict], key: str = "ate_cm") -> str:
+    v = np.array([r[key] for r in rows], float)
+    lost = sum(bool(r["lost"]) for r in rows)
+    return f"median {np.median(v):.2f}, worst {v.max():.2f} cm" + (f"; lost in {lost} of {len(rows)}" if lost else "; never lost")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--seeds", default=",".join(map(str, REPORT_SEEDS)), help="run seeds (default: the report seeds)")
+    p.add_argument("--part", default="accuracy,imu,clicks,reuse", help="which figures")
+    p.add_argument("--jobs", type=int, default=2, help="parallel processes")
+    p.add_argument("--scenarios", default=",".join(STATIC + MOVING), help="for the accuracy part")
+    a = p.parse_args()
+    seeds = [int(s) for s in a.seeds.split(",")]
+    parts = set(a.part.split(","))
+    jobs = []
+    if "accuracy" in parts:
+        jobs += [("camera", sc, s) for sc in a.scenarios.split(",") for s in seeds]
+    if "imu" in parts:
+        jobs += [("imu", "walk", s) for s in seeds]
+    if "clicks" in parts:
+        jobs += [(k, sc, s) for sc in ("workbench-static", "walk") for s in seeds for k in ("camera", "exact")]
+    if "reuse" in parts:
+        jobs += [("reuse", pair, s) for pair in REUSE for s in seeds[:2]]
+    jobs = list(dict.fromkeys(jobs))
+    results: dict = {}
+    print(f"SLAM over seeds {seeds}: {len(jobs)} runs, {a.jobs} at a time (recordings cached in {CACHE})", flush=True)
+    with ProcessPoolExecutor(a.jobs) as ex:
+        for kind, scenario, seed, r in ex.map(_job, jobs):
+            results.setdefault((kind, scenario), []).append(r)
+            extra = f", located after {r['located_s']:.2f} s" if kind == "reuse" and r["located_s"] is not None else ""
+            print(f"  {kind:6s} {scenario:40s} seed {seed}: ATE {r['ate_cm']:.2f} cm (max {r['max_cm']:.2f}), "
+                  f"{'LOST ' + str(r['lost_frames']) + ' frames, ' if r['lost'] else ''}{r['ms']:.1f} ms/frame{extra}",
+                  flush=True)
+    print("\n| figure | target | median, worst |\n|---|---|---|")
+    for (kind, scenario), rows in results.items():
+        if kind == "camera" and scenario in TARGET_CM:
+            ok = np.median([r["ate_cm"] for r in rows]) <= TARGET_CM[scenario]
+            print(f"| {scenario}, camera only | <= {TARGET_CM[scenario]:g} cm | {_summary(rows)}{'' if ok else ' (NOT MET)'} |")
+        elif kind == "camera":
+            print(f"| {scenario}, camera only | (reported) | {_summary(rows)} |")
+        elif kind == "imu":
+            print(f"| {scenario}, realistic IMU with bias states | <= 1 cm | {_summary(rows)} |")
+        elif kind == "reuse":
+            loc = [r["located_s"] for r in rows]
+            print(f"| map reuse {scenario}, no target, no IMU | <= 2 cm, located < 1 s | {_summary(rows)}; located "
+                  f"after {', '.join('never' if v is None else f'{v:.2f} s' for v in loc)} |")
+    for sc in ("workbench-static", "walk"):
+        c, e = results.get(("camera", sc)), results.get(("exact", sc))
+        if c and e:
+            ratio = np.array([x["ate_cm"] for x in c]) / np.maximum([y["ate_cm"] for y in e], 1e-9)
+            print(f"| clicked start / exact start, {sc} | within 10% | ratio median {np.median(ratio):.2f}, "
+                  f"worst {ratio.max():.2f} |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
