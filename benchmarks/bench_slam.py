@@ -41,8 +41,7 @@ MOVING = ("walk", "sit-down", "workbench-gaze-away", "kitchen-gaze-away", "offic
 TARGET_CM = {**{s: 1.0 for s in STATIC if s != "office-far-target"},
              **{s: 2.0 for s in ("walk", "sit-down", "workbench-gaze-away", "kitchen-gaze-away", "office-sit-down")}}
 #: Map reuse: (mapping scenario, re-locating scenario), the same place (scene seed).
-REUSE = (("workbench-static", "sit-down"), ("workbench-static", "workbench-gaze-away"),
-         ("kitchen-static", "kitchen-walk"), ("office-static", "office-sit-down"))
+REUSE = (("workbench-static", "sit-down"), ("kitchen-static", "kitchen-walk"))
 
 
 def recording(scenario: str, seed: int, scene_seed: int | None = None) -> Path:
@@ -145,7 +144,7 @@ def main() -> int:
     if "clicks" in parts:
         jobs += [(k, sc, s) for sc in ("workbench-static", "walk") for s in seeds for k in ("camera", "exact")]
     if "reuse" in parts:
-        jobs += [("reuse", pair, s) for pair in REUSE for s in seeds[:2]]
+        jobs += [("reuse", pair, s) for pair in REUSE for s in seeds]
     jobs = list(dict.fromkeys(jobs))
     results: dict = {}
     print(f"SLAM over seeds {seeds}: {len(jobs)} runs, {a.jobs} at a time (recordings cached in {CACHE})", flush=True)
@@ -159,7 +158,7 @@ def main() -> int:
     print("\n| figure | target | median, worst |\n|---|---|---|")
     for (kind, scenario), rows in results.items():
         if kind == "camera" and scenario in TARGET_CM:
-            ok = np.median([r["ate_cm"] for r in rows]) <= TARGET_CM[scenario]
+            ok = max(r["ate_cm"] for r in rows) <= TARGET_CM[scenario] and not any(r["lost"] for r in rows)
             print(f"| {scenario}, camera only | <= {TARGET_CM[scenario]:g} cm | {_summary(rows)}{'' if ok else ' (NOT MET)'} |")
         elif kind == "camera":
             print(f"| {scenario}, camera only | (reported) | {_summary(rows)} |")
@@ -167,8 +166,9 @@ def main() -> int:
             print(f"| {scenario}, realistic IMU with bias states | <= 1 cm | {_summary(rows)} |")
         elif kind == "reuse":
             loc = [r["located_s"] for r in rows]
+            ok = max(r["ate_cm"] for r in rows) <= 2.0 and all(r["located_s"] is not None and r["located_s"] < 1.0 for r in rows)
             print(f"| map reuse {scenario}, no target, no IMU | <= 2 cm, located < 1 s | {_summary(rows)}; located "
-                  f"after {', '.join('never' if v is None else f'{v:.2f} s' for v in loc)} |")
+                  f"after {', '.join('never' if v is None else f'{v:.2f} s' for v in loc)}{'' if ok else ' (NOT MET)'} |")
     for sc in ("workbench-static", "walk"):
         c, e = results.get(("camera", sc)), results.get(("exact", sc))
         if c and e:
