@@ -35,6 +35,8 @@ import numpy as np  # noqa: E402
 
 CACHE = Path(os.environ.get("WVR_BENCH_CACHE", Path(__file__).parent / ".cache"))
 REPORT_SEEDS = (2, 3, 4, 5, 6)
+#: How new features start (--features): "inverse-depth" (the default) or "particles".
+FEATURES = os.environ.get("WVR_BENCH_FEATURES", "inverse-depth")
 STATIC = ("workbench-static", "kitchen-static", "office-static", "office-far-target")
 MOVING = ("walk", "sit-down", "workbench-gaze-away", "kitchen-gaze-away", "office-sit-down", "kitchen-walk")
 #: The issue's targets (cm); kitchen-walk and office-far-target are reported without one.
@@ -75,7 +77,7 @@ def slam_ate(seq_path: Path, imu: bool = False, exact_start: bool = False, map_p
     from runtime.slam.config import MapSettings
     from runtime.slam.run import run_slam
 
-    settings = replace(MapSettings(), use_imu=imu)
+    settings = replace(MapSettings(), use_imu=imu, features=os.environ.get("WVR_BENCH_FEATURES", FEATURES))
     with tempfile.TemporaryDirectory() as d:
         seq = seq_path
         if exact_start:
@@ -132,9 +134,12 @@ def main() -> int:
     p.add_argument("--seeds", default=",".join(map(str, REPORT_SEEDS)), help="run seeds (default: the report seeds)")
     p.add_argument("--part", default="accuracy,imu,clicks,reuse", help="which figures")
     p.add_argument("--jobs", type=int, default=2, help="parallel processes")
+    p.add_argument("--features", choices=["inverse-depth", "particles"], default=FEATURES,
+                   help="how new features start (default inverse-depth)")
     p.add_argument("--scenarios", default=",".join(STATIC + MOVING), help="for the accuracy part")
     a = p.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
+    os.environ["WVR_BENCH_FEATURES"] = a.features      # for the worker processes
     parts = set(a.part.split(","))
     jobs = []
     if "accuracy" in parts:
@@ -147,7 +152,7 @@ def main() -> int:
         jobs += [("reuse", pair, s) for pair in REUSE for s in seeds]
     jobs = list(dict.fromkeys(jobs))
     results: dict = {}
-    print(f"SLAM over seeds {seeds}: {len(jobs)} runs, {a.jobs} at a time (recordings cached in {CACHE})", flush=True)
+    print(f"SLAM ({a.features} features) over seeds {seeds}: {len(jobs)} runs, {a.jobs} at a time (recordings cached in {CACHE})", flush=True)
     with ProcessPoolExecutor(a.jobs) as ex:
         for kind, scenario, seed, r in ex.map(_job, jobs):
             results.setdefault((kind, scenario), []).append(r)
