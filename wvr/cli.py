@@ -368,7 +368,9 @@ def cmd_slam(args) -> int:
     from runtime.slam.run import run_slam
 
     settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
-                       features=args.features, measure_max=args.measure)
+                       features=args.features)
+    if args.measure is not None:
+        settings = replace(settings, measure_max=args.measure)
     if args.save_map is not None:
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends
@@ -882,8 +884,8 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--features", choices=["inverse-depth", "particles"], default="inverse-depth",
                     help="how new features start: inverse depth, in the filter from the first frame (default), or "
                          "the paper's particle depth pdf")
-    sl.add_argument("--measure", type=_positive_int, default=30, metavar="N",
-                    help="features measured per frame, at most (default 30)")
+    sl.add_argument("--measure", type=_positive_int, default=None, metavar="N",
+                    help="features measured per frame, at most (default: MapSettings.measure_max, 40)")
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")

@@ -64,8 +64,8 @@ class MapSettings:
 
     # -- features --
     features: str = "inverse-depth"      # how new features start: FEATURE_TYPES
-    measure_max: int = 30                # features measured per frame, at most
-    visible_min: int = 24                # add features when fewer were matched (inliers)
+    measure_max: int = 40                # features measured per frame, at most
+    visible_min: int = 32                # add features when fewer were matched (inliers)
     new_per_frame: int = 4               # new features started in one frame, at most
     min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
