@@ -675,8 +675,11 @@ def cmd_station(args) -> int:
 def cmd_demo(args) -> int:
     from wvr.demo import run_demo
 
-    report = run_demo(Path(args.out))
-    print(f"wrote {report}")
+    r = run_demo(Path(args.out))
+    print(f"wrote {r.report}")
+    if r.failed:
+        print(f"wvr demo: {len(r.failed)} stage(s) failed: {'; '.join(r.failed)} (see {r.report})", file=sys.stderr)
+        return 1
     return 0
 
 

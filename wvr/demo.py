@@ -5,6 +5,10 @@ section for ``report.md`` that links its files, printed from the runners' typed 
 stages (design, kinematics, placement, twin, SLAM, gaze, stabilisation, planar tracking, head
 tracking) are listed in :data:`STAGES` in pipeline order; the head a stage uses is whatever the
 previous stages chose (``context["head"]``).
+
+A stage that cannot do its work raises :class:`StageFailed` (or fails with any error): the
+report says so under its title and at the top, the later stages still run, and ``wvr demo``
+exits with status 1.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import json
 import shutil
 import time
 from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -20,6 +25,16 @@ from tqdm import tqdm
 
 from kinematics import reference_head, save_head
 from kinematics.camera import default_camera, save_camera
+
+
+class StageFailed(RuntimeError):
+    """A demo stage could not do its work (the message says why)."""
+
+
+@dataclass
+class DemoResult:
+    report: Path                                  # report.md
+    failed: list[str] = field(default_factory=list)   # titles of the stages that failed
 
 
 def demo_sweep():
@@ -141,8 +156,10 @@ def stage_slam(out: Path, context: dict) -> str:
 
     seq = context.get("sequence")
     if seq is None:
-        return "No recording to run on."
+        raise StageFailed("no recording to run on (the twin stage failed)")
     r = run_slam(seq, out, video=False, progress=False)
+    if r.lost:
+        raise StageFailed(f"the track was lost ({r.lost_frames} of {r.frames} frames)")
     e = trajectory_errors(read_trajectory(out / "trajectory.tum"), open_sequence(seq).groundtruth)
     rel = out.name
     return "\n".join([
@@ -168,7 +185,7 @@ def stage_gaze(out: Path, context: dict) -> str:
     try:
         s = run_on_twin(twin, sc, Task("fixate", target[None]), out, seconds=4.0, progress=False)
     except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
-        return f"The closed loop could not run with the chosen head and mount: {e}"
+        raise StageFailed(f"the closed loop could not run with the chosen head and mount: {e}") from e
     finally:
         twin.close()
     rel = out.name
@@ -224,7 +241,7 @@ def stage_planar_tracking(out: Path, context: dict) -> str:
     try:
         seq_dir = record(twin, scenario, out / "workbench-card", seconds=1.8, seed=0, progress=False)
     except ValueError as e:       # e.g. the card is not in view from the chosen head and mount
-        return f"The card could not be recorded with the chosen head and mount: {e}"
+        raise StageFailed(f"the card could not be recorded with the chosen head and mount: {e}") from e
     finally:
         twin.close()
     seq = open_sequence(seq_dir)
@@ -361,7 +378,7 @@ def stage_station(out: Path, context: dict) -> str:
         st.stop("demo script done")
         st.wait(60)
     except ValueError as e:       # e.g. the chosen head cannot see the target from this mount
-        return f"The station could not run with the chosen head and mount: {e}"
+        raise StageFailed(f"the station could not run with the chosen head and mount: {e}") from e
     finally:
         written = st.close()
     rel = out.name
@@ -392,24 +409,31 @@ STAGES: list[tuple[str, str, Callable[[Path, dict], str]]] = [
 ]
 
 
-def run_demo(out: Path) -> Path:
-    """Run all stages into ``out`` (an output folder: INCOMPLETE until the report is written);
-    returns the path of ``report.md``."""
+def run_demo(out: Path, stages=None) -> DemoResult:
+    """Run all stages (or ``stages``, as :data:`STAGES`) into ``out`` (an output folder:
+    INCOMPLETE until the report is written); returns report.md's path and the failed stages."""
     from kinematics.outdir import output_folder
 
     context: dict = {}
+    failed: list[str] = []
     sections = ["# wvr demo", "",
                 "Every stage of the pipeline that exists, in order, with small budgets "
                 "(Mayol, Davison, Tordoff, Murray: *Applying Active Vision and SLAM to Wearables*).", ""]
     with output_folder(out) as out:
-        for folder, title, fn in tqdm(STAGES, desc="wvr demo", unit="stage"):
+        for folder, title, fn in tqdm(STAGES if stages is None else stages, desc="wvr demo", unit="stage"):
             d = out / folder
             if d.exists():          # the demo owns its folders: every run starts afresh
                 shutil.rmtree(d)
             d.mkdir()
             t0 = time.perf_counter()
-            body = fn(d, context)
+            try:
+                body = fn(d, context)
+            except Exception as e:      # the report records it; the later stages still run
+                failed.append(title)
+                body = f"**FAILED**: {e}" if isinstance(e, StageFailed) else f"**FAILED** ({type(e).__name__}): {e}"
             sections += [f"## {title}", "", body, "", f"*Stage time: {time.perf_counter() - t0:.1f} s*", ""]
+        if failed:
+            sections[4:4] = [f"**{len(failed)} stage(s) FAILED**: {', '.join(failed)}.", ""]
         report = out / "report.md"
         report.write_text("\n".join(sections))
-    return report
+    return DemoResult(report, failed)

@@ -51,11 +51,41 @@ def test_bad_head_file_is_one_line_and_exit_2(tmp_path):
 
 @pytest.mark.slow
 def test_demo_writes_a_report_whose_links_exist(tmp_path):
-    assert main(["demo", "--out", str(tmp_path)]) == 0
+    assert main(["demo", "--out", str(tmp_path)]) == 0      # 1 if any stage failed
     report = (tmp_path / "report.md").read_text()
+    assert "FAILED" not in report
     links = re.findall(r"\]\(([^)]+)\)", report)
     assert links, "the report links its stages' outputs"
     for link in links:
         assert (tmp_path / link).exists(), link
     model = mujoco.MjModel.from_xml_path(str(tmp_path / "kinematics" / "head.xml"))
     assert model.nu == 3
+
+
+def test_a_failed_demo_stage_fails_the_demo_and_is_named_in_the_report(tmp_path, monkeypatch, capsys):
+    import wvr.demo as demo
+
+    def ok(out, context):
+        (out / "x.txt").write_text("x")
+        context["ran"] = True
+        return "[x](ok/x.txt)"
+
+    def refused(out, context):
+        raise demo.StageFailed("the closed loop could not run with the chosen head and mount: unreachable")
+
+    def crashes(out, context):
+        raise ValueError("broken")
+
+    def after(out, context):
+        return "later stages still run" if context.get("ran") else "no context"
+
+    stages = [("ok", "Fine", ok), ("gaze", "Gaze", refused), ("crash", "Crash", crashes), ("after", "After", after)]
+    monkeypatch.setattr(demo, "STAGES", stages)
+    assert main(["demo", "--out", str(tmp_path / "d")]) == 1
+    assert "Gaze" in capsys.readouterr().err
+    report = (tmp_path / "d" / "report.md").read_text()
+    assert "2 stage(s) FAILED**: Gaze, Crash" in report
+    assert "**FAILED**: the closed loop could not run" in report and "(ValueError): broken" in report
+    assert "later stages still run" in report and not (tmp_path / "d" / "INCOMPLETE").exists()
+    r = demo.run_demo(tmp_path / "e", stages=stages[:1])
+    assert r.failed == [] and "FAILED" not in r.report.read_text()
