@@ -217,7 +217,8 @@ class _Track:
         centre), and its measurement noise as a multiple of the pixel noise: the template's
         prediction degrades as the view moves from the first (a wrong plane guess warps it
         wrongly), ``1 + (angle / view_noise_angle)^2 + (log range ratio / log
-        view_noise_scale)^2``; the target's points, whose plane is known, keep 1."""
+        view_noise_scale)^2``; the target's points, printed corners whose plane is known, are
+        located more closely (``known_sigma_px``)."""
         s = self.slam.s
         a = Y - self.state.r
         b = Y - np.array([f.r0 for f in self.features])
@@ -230,7 +231,7 @@ class _Track:
         ok = (cos >= np.cos(np.radians(angle))) & (ratio >= 1 / rmax) & (ratio <= rmax)
         scale = 1.0 + (np.degrees(np.arccos(cos)) / s.view_noise_angle_deg) ** 2 \
             + (np.log(np.maximum(ratio, 1e-9)) / np.log(s.view_noise_scale)) ** 2
-        return ok, np.where(known, 1.0, scale)
+        return ok, np.where(known, (s.known_sigma_px / self.slam.cfg.sigma_pixel) ** 2, scale)
 
     def world_points(self) -> np.ndarray:
         """(N, 3) every feature's point (an inverse-depth feature's at its current depth, at
