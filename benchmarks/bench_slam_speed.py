@@ -71,7 +71,7 @@ def timed_run(seq_path: Path, measure_max: int, profile: bool = False):
 
     seq = open_sequence(seq_path)
     frames = [f for f in seq.frames() if f.image is not None]     # decoding, outside the clock
-    slam = MonoSLAM(seq.camera, settings=replace(MapSettings(), use_imu=False, measure_max=measure_max))
+    slam = MonoSLAM(seq.camera, settings=replace(MapSettings(), use_imu=False).with_measure(measure_max))
     slam.start(frames[0].image, frames[0].t, seq.target)
     prof = cProfile.Profile() if profile else None
     secs, sizes, matched = [], [], []

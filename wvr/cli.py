@@ -370,7 +370,7 @@ def cmd_slam(args) -> int:
     settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
                        features=args.features)
     if args.measure is not None:
-        settings = replace(settings, measure_max=args.measure)
+        settings = settings.with_measure(args.measure)
     if args.save_map is not None:
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends

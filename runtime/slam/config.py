@@ -6,7 +6,7 @@ held-out seeds."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 FEATURE_TYPES = ("inverse-depth", "particles")
 WARP_MODES = ("known", "neighbours", "all")
@@ -138,6 +138,12 @@ class MapSettings:
     imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes
     imu_max_accel_m_s2: float = 160.0
 
+    def with_measure(self, n: int) -> "MapSettings":
+        """These settings measuring at most ``n`` features a frame, adding new ones below the
+        same fraction of ``n`` as the defaults do (32 of 40)."""
+        fraction = MapSettings.visible_min / MapSettings.measure_max
+        return replace(self, measure_max=int(n), visible_min=max(3, min(int(n), int(round(n * fraction)))))
+
     def __post_init__(self):
         if self.features not in FEATURE_TYPES:
             raise ValueError(f"MapSettings.features = {self.features!r}: give one of {', '.join(FEATURE_TYPES)}")
@@ -146,5 +152,8 @@ class MapSettings:
         _check_numbers(self)
         if self.measure_max < 3:
             raise ValueError(f"MapSettings.measure_max = {self.measure_max}: measure at least 3 features a frame")
+        if self.visible_min > self.measure_max:
+            raise ValueError(f"MapSettings.visible_min = {self.visible_min} exceeds measure_max = {self.measure_max}: "
+                             "new features would start every frame; give at most measure_max (see with_measure)")
         if self.template_px % 2 == 0 or self.template_px < 5:
             raise ValueError(f"MapSettings.template_px = {self.template_px}: give an odd size of at least 5")

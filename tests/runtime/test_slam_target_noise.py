@@ -39,3 +39,13 @@ def test_the_target_at_half_a_pixel_tightens_the_pose_more_than_at_one():
         s.process(img, 1 / 30)
         sig[k] = np.sqrt(np.trace(s.state.P[:3, :3]))
     assert sig[0.5] < 0.8 * sig[1.0], sig
+
+
+def test_measure_settings_keep_new_features_below_what_is_measured():
+    import pytest
+
+    s = MapSettings().with_measure(30)
+    assert (s.measure_max, s.visible_min) == (30, 24)
+    assert MapSettings().with_measure(3).visible_min == 3
+    with pytest.raises(ValueError, match="visible_min = 32 exceeds measure_max = 30"):
+        replace(MapSettings(), measure_max=30)
