@@ -132,13 +132,23 @@ class JointCommand:
 
 
 @dataclass(frozen=True)
+class ImuNoise:
+    """An IMU's white-noise densities as the SLAM's prediction should take them: gyro,
+    rad/s/sqrt(Hz), and accelerometer (specific force), m/s^2/sqrt(Hz)."""
+
+    gyro: float
+    accel: float
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     """What a robot reports about itself.
 
     head : the head's geometry (joint ranges and servo speeds are its hard limits).
     camera : the camera's intrinsics. frame_rate : Hz, the control period's inverse.
     speed_limit : (3,) rad/s, the fastest any joint may be driven (at most the servos').
-    name : for logs and reports.
+    name : for logs and reports. imu_noise : its IMU's noise (:class:`ImuNoise`), or None for
+    the SLAM's defaults (a calibrated MEMS IMU's raw rates and specific force).
     """
 
     head: HeadGeometry
@@ -146,6 +156,7 @@ class RobotInfo:
     frame_rate: float
     speed_limit: np.ndarray
     name: str = "robot"
+    imu_noise: ImuNoise | None = None
 
     @property
     def lower(self) -> np.ndarray:

@@ -27,7 +27,9 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import asdict, dataclass, field
+import signal
+import threading
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -40,9 +42,41 @@ from kinematics.tomlfile import read_toml
 from ..gaze import ControllerSettings, GazeController, GazeRefused
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
+from ..slam.config import DEFAULT_CONFIG, SlamConfig
 from ..slam.system import MonoSLAM
 from ..vision2d.track import METHODS as TRACK_METHODS
 from ..vision2d.track import make_tracker
+
+
+class _CtrlC:
+    """Ctrl-C (SIGINT) as a flag the loop reads each period, not an exception raised wherever
+    the signal lands: a library mid-call (the QP solver) can turn that exception into an
+    ordinary failure and swallow it. A second Ctrl-C raises at once (a blocked device wait).
+    Only in the main thread (elsewhere Python keeps its own)."""
+
+    def __init__(self):
+        self.pressed = False
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._press)
+
+    def _press(self, signum, frame) -> None:
+        if self.pressed:
+            raise KeyboardInterrupt
+        self.pressed = True
+
+    def restore(self) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+
+
+def slam_config(info: RobotInfo) -> SlamConfig:
+    """The SLAM's filter settings for a robot: its IMU's noise where it reports one."""
+    if info.imu_noise is None:
+        return DEFAULT_CONFIG
+    return replace(DEFAULT_CONFIG, imu_gyro_noise=info.imu_noise.gyro, imu_accel_noise=info.imu_noise.accel)
+
 
 #: What the closed loop's controller may be asked to do.
 TASKS = ("fixate", "saccade", "stabilise", "body", "track")
@@ -223,7 +257,7 @@ class ClosedLoop:
         if callable(self.start_target):
             self.start_target = self.start_target(obs)
         if self.task.uses_slam:
-            self.slam = MonoSLAM(self.info.camera, imu=True)
+            self.slam = MonoSLAM(self.info.camera, slam_config(self.info), imu=True)
             self.slam.start(obs.image, obs.t, self.start_target)
         self.ctl = GazeController(self.info.head, self.info.camera, obs.q, self.dt, self.settings)
         if self.task.kind == "track":
@@ -402,9 +436,12 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     interrupted, fault = None, None
     bar = tqdm(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
+    ctrl_c = _CtrlC()
     try:
         i = 0
         while True:
+            if ctrl_c.pressed:
+                raise KeyboardInterrupt
             if truth is not None:
                 truths.append(truth.truth())
             cmd = loop.step(obs)
@@ -424,6 +461,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     except Exception as e:  # noqa: BLE001 - a device fault: write what was done, then re-raise
         interrupted, fault = f"fault: {e}", e
     finally:
+        ctrl_c.restore()
         bar.close()
     log = loop.log
     summary = {"scenario": label or info.name, "task": task.kind, "seconds": float(log.rows[-1].t - log.rows[0].t)

@@ -385,7 +385,8 @@ class HardwareRig:
     @property
     def info(self) -> RobotInfo:
         return RobotInfo(head=self.cfg.head, camera=self.cfg.camera, frame_rate=self.cfg.fps,
-                         speed_limit=np.minimum(self.cfg.head.max_speed, self.cfg.speed_limit_rad_s), name="rig")
+                         speed_limit=np.minimum(self.cfg.head.max_speed, self.cfg.speed_limit_rad_s), name="rig",
+                         imu_noise=self.imu.noise if self.imu is not None else None)
 
     def _imu_until(self, t: float) -> ImuSamples:
         if self.imu is None:

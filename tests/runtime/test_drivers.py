@@ -377,3 +377,28 @@ def test_start_up_sets_the_rig_limits_on_the_board(tmp_path, board):
             sb.start()
     finally:
         sb.maestro.close()
+
+
+def test_the_rvc_streams_noise_reaches_the_slams_prediction():
+    from kinematics import reference_head
+    from kinematics.camera import default_camera
+    from runtime.apps.closed_loop import slam_config
+    from runtime.drivers.imu import RVC_GYRO_NOISE
+    from runtime.robot import RobotInfo
+    from runtime.slam.config import DEFAULT_CONFIG
+
+    devs = [PtyDevice(None, "imu"), PtyDevice(None, "imu")]
+    rvc, text = ImuReader.open(devs[0].path, "bno085-rvc"), ImuReader.open(devs[1].path, "text")
+    try:
+        # Rates differenced from 0.01-deg orientations are far noisier than a raw gyro's.
+        assert rvc.noise.gyro == RVC_GYRO_NOISE > 5 * DEFAULT_CONFIG.imu_gyro_noise and text.noise is None
+        head = reference_head()
+        info = RobotInfo(head, default_camera(), 30.0, head.max_speed, imu_noise=rvc.noise)
+        cfg = slam_config(info)
+        assert (cfg.imu_gyro_noise, cfg.imu_accel_noise) == (rvc.noise.gyro, rvc.noise.accel)
+        assert slam_config(RobotInfo(head, default_camera(), 30.0, head.max_speed)) == DEFAULT_CONFIG
+    finally:
+        rvc.close()
+        text.close()
+        for d in devs:
+            d.close()
