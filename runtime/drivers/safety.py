@@ -79,7 +79,7 @@ class Watchdog:
     """Hold when the command's basis (or the heartbeat) goes stale; go home after ``hold_s``."""
 
     def __init__(self, settings: SafetySettings):
-        self.s = settings
+        self.settings = settings
         self.state = "ok"          # "ok", "hold" or "home"
         self.stale_since: float | None = None
         self.heartbeat_t: float | None = None
@@ -89,9 +89,9 @@ class Watchdog:
         self.heartbeat_t = float(t)
 
     def stale(self, command: JointCommand, t: float) -> bool:
-        if command.basis_t is not None and t - command.basis_t > self.s.pose_timeout_s:
+        if command.basis_t is not None and t - command.basis_t > self.settings.pose_timeout_s:
             return True
-        hb = self.s.heartbeat_timeout_s
+        hb = self.settings.heartbeat_timeout_s
         return hb is not None and (self.heartbeat_t is None or t - self.heartbeat_t > hb)
 
     def apply(self, q: np.ndarray, q_now: np.ndarray, command: JointCommand, t: float, dt: float) -> np.ndarray:
@@ -101,12 +101,12 @@ class Watchdog:
         if self.stale_since is None:
             self.stale_since = t
             self.trips += 1
-        if t - self.stale_since < self.s.hold_s:
+        if t - self.stale_since < self.settings.hold_s:
             self.state = "hold"
             return q_now.copy()
         self.state = "home"
-        step = self.s.home_rate_rad_s * dt
-        return q_now + np.clip(np.asarray(self.s.home, float) - q_now, -step, step)
+        step = self.settings.home_rate_rad_s * dt
+        return q_now + np.clip(np.asarray(self.settings.home, float) - q_now, -step, step)
 
 
 @dataclass

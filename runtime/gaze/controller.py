@@ -104,7 +104,7 @@ class GazeController:
         self.head = head
         self.camera = camera
         self.dt = float(dt)
-        self.s = settings
+        self.settings = settings
         self.lead = settings.lead_s if settings.lead_s is not None else self.dt + settings.servo_lag_s
         self.filter = ServoFilter(head, q0, speed_limit=settings.motion_limit_rad_s)
         self.speed = self.filter.speed
@@ -240,7 +240,7 @@ class GazeController:
     def emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
         if prompt.kind == "ok":          # reachable from where the wearer is now: nothing to ask
             return None
-        if force or self.t - self._last_prompt_t >= self.s.prompt_every_s:
+        if force or self.t - self._last_prompt_t >= self.settings.prompt_every_s:
             self._last_prompt_t = self.t
             self.prompts.append((self.t, prompt))
             return prompt
@@ -278,7 +278,7 @@ class GazeController:
         qd_sent = (q_cmd - q) / self.dt
         self.qd_prev = qd_sent
         landed = False
-        if self.mode == "saccade" and not self.landed and reachable and err < self.s.landed_rad \
+        if self.mode == "saccade" and not self.landed and reachable and err < self.settings.landed_rad \
                 and np.max(np.abs(qd_sent)) < 0.2 * float(np.min(self.speed)):
             self.landed = landed = True
         return GazeCommand(t=self.t, mode=self.mode, q=q_cmd, qd=qd_sent, q_desired=q_des, error_rad=err,

@@ -158,7 +158,7 @@ class ImuStream:
     frame interval when they are fit to use."""
 
     def __init__(self, settings: MapSettings):
-        self.s = settings
+        self.settings = settings
         self.rows = np.zeros((0, 7))
         self.counts = ImuCounts()
         self.t_last = -np.inf
@@ -173,8 +173,8 @@ class ImuStream:
         c.rows += len(rows)
         problems = []
         finite = np.isfinite(rows).all(axis=1)
-        spike = finite & ((np.linalg.norm(rows[:, 1:4], axis=1) > self.s.imu_max_rate_rad_s)
-                          | (np.linalg.norm(rows[:, 4:7], axis=1) > self.s.imu_max_accel_m_s2))
+        spike = finite & ((np.linalg.norm(rows[:, 1:4], axis=1) > self.settings.imu_max_rate_rad_s)
+                          | (np.linalg.norm(rows[:, 4:7], axis=1) > self.settings.imu_max_accel_m_s2))
         ok = finite & ~spike
         t = rows[:, 0]
         order = np.zeros(len(rows), bool)
@@ -204,7 +204,7 @@ class ImuStream:
         """The rows for the interval (t0, t1], or None if they do not cover it without a gap
         longer than ``imu_max_gap_s`` (then the frame is predicted without the IMU, counted)."""
         r = self.rows
-        if not len(r) or r[0, 0] > t0 or r[-1, 0] < t1 - self.s.imu_max_gap_s:
+        if not len(r) or r[0, 0] > t0 or r[-1, 0] < t1 - self.settings.imu_max_gap_s:
             if len(r) and r[0, 0] <= t1:
                 self.counts.gaps += 1
             return None
@@ -212,7 +212,7 @@ class ImuStream:
         i1 = int(np.searchsorted(r[:, 0], t1, side="right"))
         seg = r[i0:i1]
         edges = np.concatenate([[t0], seg[1:, 0], [t1]])
-        if np.diff(edges).max() > self.s.imu_max_gap_s:
+        if np.diff(edges).max() > self.settings.imu_max_gap_s:
             self.counts.gaps += 1
             return None
         return seg

@@ -163,7 +163,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
                 st = slam.process(f.image, f.t)
                 if st.lost and not prev_lost:
                     tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
-                               f"{slam.s.lost_after} frames; re-localising against the map")
+                               f"{slam.settings.lost_after} frames; re-localising against the map")
                 if prev_lost and not st.lost:
                     tqdm.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
         for msg in slam.messages[said:]:

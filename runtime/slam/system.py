@@ -151,21 +151,21 @@ class _Track:
         self.state = state
         self.features = features
         self.rays: list = []
-        self.low_matches = 0 if localised else slam.s.lost_after
+        self.low_matches = 0 if localised else slam.settings.lost_after
         self.localised = localised
         self.score = 0.0
         self.last: SearchView | None = None
 
     @property
     def lost(self) -> bool:
-        return self.low_matches >= self.slam.s.lost_after
+        return self.low_matches >= self.slam.settings.lost_after
 
     def copy_for(self, state: State, features: list[MapFeature]) -> "_Track":
         return _Track(self.slam, state, features)
 
     # ------------------------------------------------------------------ one frame
     def step(self, g: np.ndarray, t_prev: float, t: float, imu_rows, st: FrameStats, frame: int) -> None:
-        s, cfg = self.slam.s, self.slam.cfg
+        s, cfg = self.slam.settings, self.slam.cfg
         lost = self.lost
         if imu_rows is not None:
             try:
@@ -219,7 +219,7 @@ class _Track:
         wrongly), ``1 + (angle / view_noise_angle)^2 + (log range ratio / log
         view_noise_scale)^2``; the target's points, printed corners whose plane is known, are
         located more closely (``known_sigma_px``)."""
-        s = self.slam.s
+        s = self.slam.settings
         a = Y - self.state.r
         b = Y - np.array([f.r0 for f in self.features])
         na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
@@ -245,7 +245,7 @@ class _Track:
     def _select(self) -> tuple[Prediction, np.ndarray, np.ndarray, int]:
         """The features to measure this frame, their innovation covariances and noise scales, and
         how many are predicted visible."""
-        s, cam = self.slam.s, self.slam.cam
+        s, cam = self.slam.settings, self.slam.cam
         st = self.state
         ks = np.arange(st.n_features)
         if not len(ks):
@@ -290,7 +290,7 @@ class _Track:
 
     def _measure(self, g: np.ndarray, st: FrameStats, frame: int) -> int:
         slam = self.slam
-        s, cam = slam.s, slam.cam
+        s, cam = slam.settings, slam.cam
         pred, S, r_scale, visible = self._select()
         st.predicted = visible
         m = len(pred.ks)
@@ -344,7 +344,7 @@ class _Track:
         become points (Civera et al.'s linearity index)."""
         state = self.state
         _, L = self._points_and_linearity()
-        ks = np.flatnonzero(L < self.slam.s.linearity_threshold)
+        ks = np.flatnonzero(L < self.slam.settings.linearity_threshold)
         if len(ks):
             try:
                 convert_to_point(state, ks)
@@ -357,7 +357,7 @@ class _Track:
         """MonoSLAM's rule (inlier matches below ``delete_ratio`` of searches after
         ``delete_min_attempts``), a quicker one for new features that fail from the start, and
         the map's size cap: beyond ``max_features`` the natural features seen longest ago go."""
-        s = self.slam.s
+        s = self.slam.settings
         state = self.state
         bad = []
         for k, f in enumerate(self.features):
@@ -397,7 +397,7 @@ class _Track:
 
     def _add(self, g: np.ndarray, st: FrameStats, frame: int, visible: int) -> None:
         slam = self.slam
-        s, cam = slam.s, slam.cam
+        s, cam = slam.settings, slam.cam
         if s.features == "particles":
             n = min(s.max_initialising - len(self.rays), s.new_per_frame)
         else:
@@ -444,18 +444,18 @@ class _Track:
         if len(points) < 4:
             return
         Y = self.world_points()[points]
-        neighbours = cKDTree(Y).query_ball_point(Y, self.slam.s.plane_radius_m)
+        neighbours = cKDTree(Y).query_ball_point(Y, self.slam.settings.plane_radius_m)
         for j, k in enumerate(points):
             f = self.features[k]
             if not f.known and len(neighbours[j]) >= 4:
-                n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf, self.slam.s.plane_tol_m)
+                n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf, self.slam.settings.plane_tol_m)
                 if n is not None:
                     f.normal, f.normal_from_map = (n if n @ (f.r0 - Y[j]) > 0 else -n), True
 
     # ------------------------------------------------------------------ particles (the paper's)
     def _refine_rays(self, g: np.ndarray, st: FrameStats, frame: int) -> None:
         slam = self.slam
-        s, cam = slam.s, slam.cam
+        s, cam = slam.settings, slam.cam
         x_v = self.state.x_v
         P_pose = self.state.P[:POSE_DIM, :POSE_DIM]
         R = slam.cfg.sigma_pixel**2 * np.eye(2)
@@ -494,7 +494,7 @@ class _Track:
             return
         depth = float(np.linalg.norm(y - self.state.r))
         try:
-            add_point_feature(self.state, uv, depth, (slam.s.promote_std_gain * p.std) ** 2, slam.cfg.sigma_pixel**2,
+            add_point_feature(self.state, uv, depth, (slam.settings.promote_std_gain * p.std) ** 2, slam.cfg.sigma_pixel**2,
                               slam.cam)
         except (SlamNumericalError, FeatureNotMeasurable):
             return
@@ -508,7 +508,7 @@ class _Track:
         """Re-acquire the camera pose from whole-image matches of the target and the most
         reliable point features (relocalise.py); on success restart the camera block there, in
         the map's own frame."""
-        s = self.slam.s
+        s = self.slam.settings
         # Points first; inverse-depth features too (a rotating head converts few), at their
         # current depth: PnP-RANSAC and the active search decide whether those are good enough.
         candidates = list(range(self.state.n_features))
@@ -540,7 +540,7 @@ class MonoSLAM:
                  imu: bool = False, seed: int = 0):
         self.cam = camera
         self.cfg = cfg
-        self.s = settings
+        self.settings = settings
         self.seed = seed
         self.use_imu = bool(imu) and settings.use_imu
         self.cam_dim = CAMERA_DIM_BIASED if (self.use_imu and settings.imu_biases) else CAMERA_DIM
@@ -594,7 +594,7 @@ class MonoSLAM:
 
     def warped(self, f: MapFeature) -> bool:
         """Whether the feature's template is predicted through its plane (MapSettings.warp)."""
-        w = self.s.warp
+        w = self.settings.warp
         return w == "all" or (w == "known" and f.known) or (w == "neighbours" and (f.known or f.normal_from_map))
 
     def T_world_cam(self) -> np.ndarray:
@@ -653,7 +653,7 @@ class MonoSLAM:
 
     # -------------------------------------------------------------- start-up
     def _camera_state(self, hyp: PoseHypothesis) -> State:
-        x_v, P = hyp.camera_prior(self.s.init_sigma_v, self.s.init_sigma_w, self.cam_dim)
+        x_v, P = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, self.cam_dim)
         if self.cam_dim == CAMERA_DIM_BIASED:
             for sl, s0 in ((BG_SLICE, self.cfg.gyro_bias_sigma0), (BA_SLICE, self.cfg.accel_bias_sigma0)):
                 P[sl, sl] = np.eye(3) * s0**2
@@ -662,7 +662,7 @@ class MonoSLAM:
     def restart_camera(self, state: State, hyp: PoseHypothesis) -> None:
         """Put the camera at a pose found against the map (re-localisation), at rest, with no
         correlation to the map; bias estimates are kept."""
-        x_v, P_vv = hyp.camera_prior(self.s.init_sigma_v, self.s.init_sigma_w, state.cam_dim)
+        x_v, P_vv = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, state.cam_dim)
         cd = state.cam_dim
         x = state.x.copy()
         x[:13] = x_v[:13]
@@ -680,7 +680,7 @@ class MonoSLAM:
         the corners nearly as well) found with its covariance, and its points inserted as
         features. Returns the refined target. Raises :class:`SlamStartError`."""
         g = grey(image)
-        s = self.s
+        s = self.settings
         ref, hyps = start_hypotheses(self.cam, g, target, s.click_search_px, s.start_pixel_sigma, s.start_max_rms_px,
                                      s.ambiguity_ratio)
         self.refined_target = ref
@@ -723,7 +723,7 @@ class MonoSLAM:
     def add_imu(self, rows) -> None:
         """Queue IMU rows (k, 7) ``[t, wx, wy, wz, ax, ay, az]`` (camera frame, imu.txt) in time
         order; bad samples are dropped, counted and said (``messages``)."""
-        if not self.s.use_imu:
+        if not self.settings.use_imu:
             return
         for msg in self.imu.add(rows):
             self.messages.append(msg)
@@ -738,7 +738,7 @@ class MonoSLAM:
         self.t_prev = t
         g = grey(image)
         self.integrals = integral_images(g)
-        rows = self.imu.covering(t_prev, t) if (self.s.use_imu and len(self.imu.rows)) else None
+        rows = self.imu.covering(t_prev, t) if (self.settings.use_imu and len(self.imu.rows)) else None
         stats = []
         for tr in self._tracks:
             st = FrameStats(self.frame, t)
@@ -764,7 +764,7 @@ class MonoSLAM:
         scores = np.array([tr.score for tr in self._tracks])
         best = int(np.argmax(scores))
         gap = scores[best] - np.delete(scores, best).max()
-        if gap > 2 * math.log(self.s.ambiguity_ratio) or self.frame >= self.s.ambiguity_frames:
+        if gap > 2 * math.log(self.settings.ambiguity_ratio) or self.frame >= self.settings.ambiguity_frames:
             self._winner = best
             self._tracks = [self._tracks[best]]
             self.messages.append(f"slam: planar target ambiguity resolved at frame {self.frame} "
@@ -773,7 +773,7 @@ class MonoSLAM:
     def skip(self, t: float, why: str) -> FrameStats:
         """A frame that could not be read: predict through it, count it."""
         self.frame += 1
-        rows = self.imu.covering(self.t_prev, t) if (self.s.use_imu and len(self.imu.rows)) else None
+        rows = self.imu.covering(self.t_prev, t) if (self.settings.use_imu and len(self.imu.rows)) else None
         for tr in self._tracks:
             done = False
             if rows is not None:
@@ -783,7 +783,7 @@ class MonoSLAM:
                 except (SlamNumericalError, ValueError):
                     pass
             if not done:
-                predict_cv(tr.state, t - self.t_prev, self.cfg, noise_gain=self.s.lost_noise_gain if tr.lost else 1.0)
+                predict_cv(tr.state, t - self.t_prev, self.cfg, noise_gain=self.settings.lost_noise_gain if tr.lost else 1.0)
         self.t_prev = t
         st = FrameStats(self.frame, t, skipped=why, lost=self.lost, map_size=self.state.n_features)
         self.stats.append(st)
@@ -797,4 +797,4 @@ class MonoSLAM:
         X = x_v[:3] + (rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ quat_to_rotation(x_v[3:7]).T
         x_next, _ = f_and_dfdx(x_v, 0.6)
         uv_next = project_points(self.cam, (X - x_next[:3]) @ quat_to_rotation(x_next[3:7]))
-        return in_image(self.cam, np.nan_to_num(uv_next, nan=-1e9), margin=self.s.margin_px)
+        return in_image(self.cam, np.nan_to_num(uv_next, nan=-1e9), margin=self.settings.margin_px)
