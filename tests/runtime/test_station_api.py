@@ -346,3 +346,16 @@ def _modes(station):
     code, payload, _ = call(station, "POST", "/api/mode", {"mode": "stabilise"})
     assert code == 422 and "attitude" in json.loads(payload)["reason"]
     assert state(station)["mode"] == "hold"
+
+
+def test_a_server_that_never_started_closes_at_once():
+    # A station whose start failed half-way (its 3D view could not start) must still close.
+    import threading
+
+    from runtime.apps.station.server import StationServer
+
+    srv = StationServer("127.0.0.1", 0, "token", None, None)
+    t = threading.Thread(target=srv.close, daemon=True)
+    t.start()
+    t.join(5.0)
+    assert not t.is_alive()

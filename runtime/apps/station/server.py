@@ -89,11 +89,16 @@ class StationServer(ThreadingHTTPServer):
         return self.server_address[1]
 
     def start(self) -> "StationServer":
-        threading.Thread(target=self.serve_forever, name="station-http", daemon=True).start()
+        self._serving = threading.Thread(target=self.serve_forever, name="station-http", daemon=True)
+        self._serving.start()
         return self
 
     def close(self) -> None:
-        self.shutdown()
+        # shutdown() waits for serve_forever to end: it would wait forever for one never started.
+        serving = getattr(self, "_serving", None)
+        if serving is not None and serving.is_alive():
+            self.shutdown()
+            serving.join(5.0)
         self.server_close()
 
     def handle_error(self, request, client_address) -> None:
