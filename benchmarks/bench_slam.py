@@ -46,9 +46,13 @@ TARGET_CM = {**{s: 1.0 for s in STATIC if s != "office-far-target"},
 REUSE = (("workbench-static", "sit-down"), ("kitchen-static", "kitchen-walk"))
 
 
-def recording(scenario: str, seed: int, scene_seed: int | None = None) -> Path:
-    """The twin's recording of ``scenario`` (realistic camera and IMU, clicked target), made once."""
-    name = f"{scenario}-s{seed}" + (f"-place{scene_seed}" if scene_seed is not None else "")
+def recording(scenario: str, seed: int, scene_seed: int | None = None, camera=None, seconds: float | None = None,
+              name: str | None = None) -> Path:
+    """The twin's recording of ``scenario`` (realistic camera and IMU, clicked target), made once
+    and kept in the cache as ``name`` (default from the scenario and seeds); ``camera`` :
+    CameraIntrinsics (default the twin's), ``seconds`` (default the scenario's)."""
+    if name is None:
+        name = f"{scenario}-s{seed}" + (f"-place{scene_seed}" if scene_seed is not None else "")
     path = CACHE / name
     if (path / "rgb.txt").exists() and not (path / "INCOMPLETE").exists():
         return path
@@ -58,9 +62,9 @@ def recording(scenario: str, seed: int, scene_seed: int | None = None) -> Path:
     CACHE.mkdir(parents=True, exist_ok=True)
     tmp = CACHE / f".{name}.{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    twin = make_twin()
+    twin = make_twin(camera=camera)
     try:
-        record(twin, scenario, tmp, seed=seed, scene_seed=scene_seed, progress=False)
+        record(twin, scenario, tmp, seconds=seconds, seed=seed, scene_seed=scene_seed, progress=False)
     finally:
         twin.close()
     shutil.rmtree(path, ignore_errors=True)

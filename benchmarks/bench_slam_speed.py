@@ -18,7 +18,6 @@ import cProfile
 import io
 import os
 import pstats
-import shutil
 import sys
 import time
 from dataclasses import replace
@@ -29,7 +28,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-CACHE = Path(os.environ.get("WVR_BENCH_CACHE", Path(__file__).parent / ".cache"))
 SIZES = {"320x240": (320, 240), "640x480": (640, 480)}
 TARGET_FPS = {"320x240": 300.0, "640x480": 150.0}
 MAP_BINS = (0, 25, 50, 75, 100, 125, 150, 200)
@@ -37,29 +35,15 @@ MAP_BINS = (0, 25, 50, 75, 100, 125, 150, 200)
 
 def recording(scenario: str, seed: int, size: tuple[int, int], seconds: float) -> Path:
     """A twin recording at ``size`` (the default camera's lens, its intrinsics scaled), made once."""
+    from bench_slam import recording as cached_recording
     from kinematics.camera import default_camera
-    from runtime.twin.recorder import record
-    from wvr.assemble import make_twin
 
     w, h = size
-    name = f"speed-{scenario}-s{seed}-{w}x{h}-{seconds:g}s"
-    path = CACHE / name
-    if (path / "rgb.txt").exists() and not (path / "INCOMPLETE").exists():
-        return path
     cam = default_camera()
     s = w / cam.width
     cam = replace(cam, width=w, height=h, fx=cam.fx * s, fy=cam.fy * s, cx=cam.cx * s, cy=cam.cy * s)
-    CACHE.mkdir(parents=True, exist_ok=True)
-    tmp = CACHE / f".{name}.{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    twin = make_twin(camera=cam)
-    try:
-        record(twin, scenario, tmp, seconds=seconds, seed=seed, progress=False)
-    finally:
-        twin.close()
-    shutil.rmtree(path, ignore_errors=True)
-    tmp.rename(path)
-    return path
+    return cached_recording(scenario, seed, camera=cam, seconds=seconds,
+                            name=f"speed-{scenario}-s{seed}-{w}x{h}-{seconds:g}s")
 
 
 def timed_run(seq_path: Path, measure_max: int, profile: bool = False):
