@@ -39,8 +39,9 @@ demo: setup
 	$(VENV)/bin/wvr demo --out $(OUT)
 	@echo "open $(OUT)/report.md"
 
+# One worker per core; a file stays on one worker so its module fixtures are built once.
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n auto --dist loadfile tests
 	$(PY) -m pytest -q --nbmake notebooks
 
 bench: setup

@@ -85,13 +85,13 @@ def test_not_toml_and_missing_file(tmp_path):
 
 def test_messages_stay_short_and_name_the_real_problem(tmp_path):
     d = reference_head().to_dict()
-    d["joints"]["pan"]["origin_m"] = [0.0] * 10_000_000        # a huge array typed by mistake
+    d["joints"]["pan"]["origin_m"] = [0.0] * 200_000        # a huge array typed by mistake
     path = tmp_path / "huge.toml"
     path.write_text(tomli_w.dumps(d))
     with pytest.raises(HeadFileError) as e:
         load_head(path)
     msg = str(e.value)
-    assert len(msg) < 300 and "joints.pan.origin_m" in msg and "10000000" in msg
+    assert len(msg) < 300 and "joints.pan.origin_m" in msg and "200000" in msg
     d = reference_head().to_dict()
     d["parts"][0]["mass_kg"] = math.inf
     with pytest.raises(HeadFileError) as e:
