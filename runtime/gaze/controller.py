@@ -237,10 +237,15 @@ class GazeController:
         return gaze_at_point(self.head, R.T @ (p_world - o), R.T @ UP, q_current=self.filter.q)
 
     # ------------------------------------------------------------------ control
+    def prompt_due(self) -> bool:
+        """Whether a standing prompt would be repeated now: its search (up to 80 IK solves) is
+        made only then, not every period, so an unreachable target never slows the loop."""
+        return self.t - self._last_prompt_t >= self.settings.prompt_every_s
+
     def emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
         if prompt.kind == "ok":          # reachable from where the wearer is now: nothing to ask
             return None
-        if force or self.t - self._last_prompt_t >= self.settings.prompt_every_s:
+        if force or self.prompt_due():
             self._last_prompt_t = self.t
             self.prompts.append((self.t, prompt))
             return prompt

@@ -88,7 +88,7 @@ class Fixate:
         err = math.acos(float(np.clip(T_now[:3, 2] @ d / np.linalg.norm(d), -1.0, 1.0)))
         res = ctl.ik_point(p, ctl.predicted_mount())
         if not res.reachable:
-            prompt = ctl.emit(wearer_prompt(ctl.head, ctl.T_world_mount, p, ctl.filter.q))
+            prompt = ctl.emit(wearer_prompt(ctl.head, ctl.T_world_mount, p, ctl.filter.q)) if ctl.prompt_due() else None
             return Desired(None, err, False, prompt)
         return Desired(res.q, err)
 

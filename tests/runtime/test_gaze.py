@@ -183,6 +183,29 @@ def test_an_unreachable_target_is_refused_with_a_prompt_to_turn_the_right_way():
         assert ctl.prompts and ctl.prompts[-1][1] is prompt
 
 
+def test_a_held_target_that_becomes_unreachable_is_prompted_about_once_a_period_of_prompts(monkeypatch):
+    """The prompt's search (up to 80 IK solves) runs when a prompt is due, not every control
+    period: the loop keeps its rate while the wearer faces away."""
+    import runtime.gaze.modes as modes
+
+    searches = []
+    monkeypatch.setattr(modes, "wearer_prompt", lambda *a, **k: searches.append(1) or wearer_prompt(*a, **k))
+    p = np.array([0.6, -0.4, -0.3])
+    q0 = fixating_posture(p)
+    ctl = GazeController(HEAD, CAM, q0, DT)
+    run_static(ctl, np.eye(4), q0, 1)
+    ctl.fixate(p)
+    T_turned = np.eye(4)
+    T_turned[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.pi]).as_matrix()   # the wearer turned round
+    seconds = 3.0
+    cmds = run_static(ctl, T_turned, q0, int(seconds / DT))
+    assert not any(c.reachable for c in cmds[2:])
+    every = ctl.settings.prompt_every_s
+    assert 1 <= len(searches) <= seconds / every + 1
+    standing = [pr for _, pr in ctl.prompts]
+    assert len(standing) == len(searches) and all(pr.kind == "turn" for pr in standing)
+
+
 def test_a_limit_above_the_servos_is_refused():
     with pytest.raises(ValueError, match="exceeds the servos"):
         GazeController(HEAD, CAM, np.zeros(3), DT, ControllerSettings(motion_limit_rad_s=12.0))

@@ -13,6 +13,7 @@ import json
 import math
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -44,6 +45,11 @@ def browser():
 
     with headless_browser() as ctx:
         yield ctx
+
+
+def camera_pixels(page) -> np.ndarray:
+    """The camera pane as the page shows it, (480, 640, 3) BGR (its CSS size is the image's)."""
+    return cv2.imdecode(np.frombuffer(page.locator("#camera").screenshot(), np.uint8), cv2.IMREAD_COLOR)
 
 
 def wait_for(cond, timeout=60.0, what="condition"):
@@ -129,9 +135,12 @@ def test_the_page_loads_with_the_token_and_the_images_update(station, browser):
     seq0 = page.evaluate("window.station.seq")
     page.wait_for_function(f"window.station.seq > {seq0}", timeout=60_000)
     # The camera view shows the twin's image: not blank, and it changes (time moves on).
-    px = np.array(page.evaluate("Array.from(document.getElementById('camera').getContext('2d')"
-                                ".getImageData(0, 0, 640, 480).data)"), np.uint8)
-    assert px.reshape(480, 640, 4)[..., :3].std() > 20
+    # What the page shows (a worker draws the canvas): the pane's pixels, 1:1 with the image's.
+    first = camera_pixels(page)
+    assert first.shape == (480, 640, 3) and first.std() > 20
+    seq1 = page.evaluate("window.station.seq")
+    page.wait_for_function(f"window.station.seq > {seq1}", timeout=60_000)
+    assert np.abs(camera_pixels(page).astype(int) - first).mean() > 0.5
     # The 3D view: viser's canvas in the frame, connected through the gate.
     frame = page.frame_locator("#view3d")
     frame.locator("canvas").first.wait_for(timeout=120_000)
@@ -201,10 +210,10 @@ def test_a_label_placed_on_the_page_shows_in_the_camera_view(station, browser):
     fid, xyz = known_features(station)[1]
 
     def magenta_near(uv):
+        shot = camera_pixels(page)
         x0, y0 = int(uv[0]) - 9, int(uv[1]) - 9
-        d = np.array(page.evaluate(f"Array.from(document.getElementById('camera').getContext('2d')"
-                                   f".getImageData({x0}, {y0}, 19, 19).data)"), np.uint8).reshape(19, 19, 4)
-        return int(((d[..., 0] > 190) & (d[..., 1] < 60) & (d[..., 2] > 190)).sum())
+        d = shot[y0:y0 + 19, x0:x0 + 19].astype(int)
+        return int(((d[..., 2] > 190) & (d[..., 1] < 60) & (d[..., 0] > 190)).sum())
 
     uv = world_to_pixels(station.live.camera, station.live.latest().view.T_world_cam, xyz[None])[0]
     assert magenta_near(uv) < 3

@@ -45,29 +45,15 @@ _OPERATOR = r"""<!doctype html>
   <a href="/wearer" target="_blank" style="color:#8cf">wearer's page</a></div>
  <div id="log"></div>
 </div>
-<script>
-const TOKEN = __TOKEN__;
-const H = {"Authorization": "Bearer " + TOKEN};
-// "#camera" opens the camera view alone (a slow machine, a measurement of the camera view).
-if (location.hash === "#camera") document.getElementById("view3d").remove();
-else document.getElementById("view3d").src = "/viser/";
-const canvas = document.getElementById("camera"), ctx = canvas.getContext("2d");
-const log = (m) => { const el = document.getElementById("log"); el.textContent = m + "\n" + el.textContent.slice(0, 4000); };
-window.station = {frames: 0, seq: -1, times: [], last: null, clicks: []};
-async function post(kind, body, source) {
-  const r = await fetch("/api/" + kind, {method: "POST", headers: {...H, "Content-Type": "application/json",
-                                                                   "X-Wvr-Source": source || "page"},
-                                         body: JSON.stringify(body || {})});
-  const j = await r.json();
-  window.station.last = {status: r.status, ...j};
-  log(kind + " " + JSON.stringify(body || {}) + " -> " + r.status + " " + (j.accepted ? "accepted" : j.reason));
-  return j;
-}
-async function pull() {
-  // The camera view as pushed by /api/stream: "WVRF", seq, t_ms, length (u32 big-endian), JPEG.
+<script id="camera-worker" type="text/x-worker">
+// The camera view as pushed by /api/stream: "WVRF", seq, t_ms, length (u32 big-endian), JPEG.
+let frames = 0;
+onmessage = (e) => pull(e.data.origin, e.data.token, e.data.canvas);
+async function pull(origin, token, canvas) {
+  const ctx = canvas ? canvas.getContext("2d") : null;
   for (;;) {
     try {
-      const r = await fetch("/api/stream", {headers: H, cache: "no-store"});
+      const r = await fetch(origin + "/api/stream", {headers: {"Authorization": "Bearer " + token}, cache: "no-store"});
       const reader = r.body.getReader();
       let buf = new Uint8Array(0);
       for (;;) {
@@ -82,19 +68,58 @@ async function pull() {
           frame = {seq: dv.getUint32(4), jpg: buf.slice(16, 16 + n)};
           buf = buf.slice(16 + n);
         }
-        if (frame) {                       // only the newest of what arrived is drawn
-          const bmp = await createImageBitmap(new Blob([frame.jpg], {type: "image/jpeg"}));
+        if (!frame) continue;                // only the newest of what arrived is drawn
+        const bmp = await createImageBitmap(new Blob([frame.jpg], {type: "image/jpeg"}));
+        const m = {seq: frame.seq, frames: ++frames, size: [bmp.width, bmp.height],
+                   at: performance.timeOrigin + performance.now()};
+        if (ctx) {
           if (canvas.width !== bmp.width) { canvas.width = bmp.width; canvas.height = bmp.height; }
-          ctx.drawImage(bmp, 0, 0);
-          const S = window.station;
-          S.seq = frame.seq; S.frames += 1; S.times.push(performance.now());
-          if (S.times.length > 200) S.times.shift();
+          ctx.drawImage(bmp, 0, 0); bmp.close();
+          postMessage(m);
+        } else {
+          m.bitmap = bmp; postMessage(m, [bmp]);
         }
       }
     } catch (e) {}
     await new Promise(res => setTimeout(res, 500));
   }
 }
+</script>
+<script>
+const TOKEN = __TOKEN__;
+const H = {"Authorization": "Bearer " + TOKEN};
+// "#camera" opens the camera view alone (a slow machine, a measurement of the camera view).
+if (location.hash === "#camera") document.getElementById("view3d").remove();
+else document.getElementById("view3d").src = "/viser/";
+const canvas = document.getElementById("camera");
+const log = (m) => { const el = document.getElementById("log"); el.textContent = m + "\n" + el.textContent.slice(0, 4000); };
+window.station = {frames: 0, seq: -1, times: [], last: null, clicks: [], size: [canvas.width, canvas.height]};
+async function post(kind, body, source) {
+  const r = await fetch("/api/" + kind, {method: "POST", headers: {...H, "Content-Type": "application/json",
+                                                                   "X-Wvr-Source": source || "page"},
+                                         body: JSON.stringify(body || {})});
+  const j = await r.json();
+  window.station.last = {status: r.status, ...j};
+  log(kind + " " + JSON.stringify(body || {}) + " -> " + r.status + " " + (j.accepted ? "accepted" : j.reason));
+  return j;
+}
+// The camera view is fetched, decoded and drawn in a worker, on an OffscreenCanvas where the
+// browser has one: the 3D view's rendering holds the page's own thread (a software-rendered
+// WebGL frame can take half a second) and must not hold the camera view back with it.
+const worker = new Worker(URL.createObjectURL(new Blob([document.getElementById("camera-worker").textContent],
+                                                        {type: "text/javascript"})));
+const offscreen = canvas.transferControlToOffscreen ? canvas.transferControlToOffscreen() : null;
+const ctx = offscreen ? null : canvas.getContext("2d");
+worker.onmessage = (e) => {
+  const S = window.station, m = e.data;
+  if (m.bitmap) {                          // no OffscreenCanvas: the worker decoded, the page draws
+    if (canvas.width !== m.bitmap.width) { canvas.width = m.bitmap.width; canvas.height = m.bitmap.height; }
+    ctx.drawImage(m.bitmap, 0, 0); m.bitmap.close();
+  }
+  S.seq = m.seq; S.frames = m.frames; S.size = m.size; S.times.push(m.at - performance.timeOrigin);
+  if (S.times.length > 200) S.times.shift();
+};
+worker.postMessage({origin: location.origin, token: TOKEN, canvas: offscreen}, offscreen ? [offscreen] : []);
 async function poll() {
   for (;;) {
     try {
@@ -111,7 +136,8 @@ async function poll() {
 }
 canvas.addEventListener("click", (e) => {
   const r = canvas.getBoundingClientRect();
-  const uv = [(e.clientX - r.left) * canvas.width / r.width, (e.clientY - r.top) * canvas.height / r.height];
+  const [w, h] = window.station.size;       // the image's pixels (the canvas itself may be the worker's)
+  const uv = [(e.clientX - r.left) * w / r.width, (e.clientY - r.top) * h / r.height];
   const tool = document.querySelector("input[name=tool]:checked").value;
   window.station.clicks.push({tool, uv, at: performance.now()});
   if (tool === "fixate") post("fixate", {uv}, "camera-view");
@@ -121,7 +147,7 @@ canvas.addEventListener("click", (e) => {
 document.querySelectorAll("button[data-mode]").forEach(b => b.onclick = () => post("mode", {mode: b.dataset.mode}));
 document.getElementById("stop").onclick = () => post("stop", {reason: "operator's page"});
 document.getElementById("reset").onclick = () => post("reset", {});
-pull(); poll();
+poll();
 </script></body></html>
 """
 
