@@ -18,6 +18,10 @@ import numpy as np
 from kinematics import HeadGeometry, gaze_at_point
 
 
+#: Turn steps in a band of the coarse search.
+_COARSE = 4
+
+
 @dataclass(frozen=True)
 class Prompt:
     """kind : "turn", "step", "none" (no single turn or step helps) or "ok" (already reachable).
@@ -46,18 +50,29 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
     T = np.asarray(T_world_mount, float)
     if _reachable(head, T, p_world, q_current):
         return Prompt("ok", text="the point is reachable; nothing to ask")
+
+    def turned(psi):
+        c, s = math.cos(psi), math.sin(psi)
+        Tn = T.copy()
+        Tn[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        return Tn
+
+    # Coarse to fine, each step of ``turn_step_rad`` as the plain search would meet them: the
+    # first band of COARSE steps whose far end is reachable (either way) is searched step by
+    # step. About a third of the IK solves of a step-by-step search for a far turn (the
+    # reachable turns form an interval much wider than a band: the pan range).
     n = int(round(math.pi / turn_step_rad))
-    for i in range(1, n + 1):
-        for sign in (1.0, -1.0):
-            psi = sign * i * turn_step_rad
-            c, s = math.cos(psi), math.sin(psi)
-            Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            Tn = T.copy()
-            Tn[:3, :3] = Rz @ T[:3, :3]
-            if _reachable(head, Tn, p_world, q_current):
-                way = "left" if psi > 0 else "right"
-                return Prompt("turn", turn_rad=psi,
-                              text=f"turn {way} about {round(math.degrees(abs(psi)) / 5) * 5:.0f} deg")
+    for b0 in range(0, n, _COARSE):
+        b1 = min(b0 + _COARSE, n)
+        if not any(_reachable(head, turned(sign * b1 * turn_step_rad), p_world, q_current) for sign in (1.0, -1.0)):
+            continue
+        for i in range(b0 + 1, b1 + 1):
+            for sign in (1.0, -1.0):
+                psi = sign * i * turn_step_rad
+                if _reachable(head, turned(psi), p_world, q_current):
+                    way = "left" if psi > 0 else "right"
+                    return Prompt("turn", turn_rad=psi,
+                                  text=f"turn {way} about {round(math.degrees(abs(psi)) / 5) * 5:.0f} deg")
     d = p_world[:2] - T[:2, 3]
     if np.linalg.norm(d) > 1e-9:
         d = d / np.linalg.norm(d)

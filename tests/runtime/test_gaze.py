@@ -206,6 +206,35 @@ def test_a_held_target_that_becomes_unreachable_is_prompted_about_once_a_period_
     assert len(standing) == len(searches) and all(pr.kind == "turn" for pr in standing)
 
 
+def test_the_prompts_coarse_to_fine_search_finds_the_smallest_turn_a_step_by_step_search_finds():
+    from runtime.gaze.prompts import _reachable
+
+    def step_by_step(T, p, q, step=math.radians(5.0)):
+        for i in range(1, 37):
+            for sign in (1.0, -1.0):
+                Tn = T.copy()
+                Tn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, sign * i * step]).as_matrix() @ T[:3, :3]
+                if _reachable(HEAD, Tn, p, q):
+                    return sign * i * step
+        return None
+
+    rng = np.random.default_rng(4)
+    q0 = fixating_posture(np.array([0.6, -0.4, -0.3]))
+    turns = []
+    for _ in range(16):
+        az, el = rng.uniform(-math.pi, math.pi), rng.uniform(-0.5, 0.3)
+        p = rng.uniform(0.5, 2.0) * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        pr = wearer_prompt(HEAD, np.eye(4), p, q0)
+        ref = step_by_step(np.eye(4), p, q0)
+        if pr.kind == "ok":
+            continue
+        assert (pr.kind == "turn") == (ref is not None)
+        if ref is not None:
+            assert pr.turn_rad == pytest.approx(ref)
+            turns.append(abs(ref))
+    assert len(turns) >= 5 and max(turns) > math.radians(60)      # far turns were among them
+
+
 def test_a_limit_above_the_servos_is_refused():
     with pytest.raises(ValueError, match="exceeds the servos"):
         GazeController(HEAD, CAM, np.zeros(3), DT, ControllerSettings(motion_limit_rad_s=12.0))
