@@ -66,6 +66,23 @@ def pixel_covariance(R_pix) -> np.ndarray:
 
 
 @compiled_kernel()
+def gather_jacobian(i, ks, kinds, starts, dims, H_c, H_f, idx, h):
+    """Measurement ``i``'s two rows of H as dense (2, c) ``h`` over the state entries ``idx[:c]``
+    (the camera's 7, then its feature's dim); returns c."""
+    k = ks[i]
+    d = dims[kinds[k]]
+    for j in range(POSE_DIM):
+        idx[j] = j
+        h[0, j] = H_c[i, 0, j]
+        h[1, j] = H_c[i, 1, j]
+    for j in range(d):
+        idx[POSE_DIM + j] = starts[k] + j
+        h[0, POSE_DIM + j] = H_f[i, 0, j]
+        h[1, POSE_DIM + j] = H_f[i, 1, j]
+    return POSE_DIM + d
+
+
+@compiled_kernel(gather_jacobian)
 def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, R, r_scale):
     """S_i (m, 2, 2) = H_i P_i H_i^T + r_scale_i R over the (7 + dim) state entries each touches."""
     m = ks.shape[0]
@@ -73,17 +90,7 @@ def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, R, r_scale):
     idx = np.empty(13, np.intp)
     h = np.zeros((2, 13))
     for i in range(m):
-        k = ks[i]
-        d = dims[kinds[k]]
-        c = POSE_DIM + d
-        for j in range(POSE_DIM):
-            idx[j] = j
-            h[0, j] = H_c[i, 0, j]
-            h[1, j] = H_c[i, 1, j]
-        for j in range(d):
-            idx[POSE_DIM + j] = starts[k] + j
-            h[0, POSE_DIM + j] = H_f[i, 0, j]
-            h[1, POSE_DIM + j] = H_f[i, 1, j]
+        c = gather_jacobian(i, ks, kinds, starts, dims, H_c, H_f, idx, h)
         for a in range(2):
             for b in range(a, 2):
                 acc = r_scale[i] * R[a, b]

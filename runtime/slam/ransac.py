@@ -28,7 +28,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics, lens_kernel_args
 
 from .features import FEATURE_DIMS
-from .filter import FrameUpdate
+from .filter import FrameUpdate, gather_jacobian
 from .kernels import compiled_kernel
 from .measurement import Prediction, h_feature_kernel
 from .quaternion import rotation_derivatives_kernel, rotation_kernel
@@ -54,7 +54,7 @@ class RansacResult:
         return int((~self.used).sum())
 
 
-@compiled_kernel(h_feature_kernel, rotation_kernel, rotation_derivatives_kernel)
+@compiled_kernel(h_feature_kernel, rotation_kernel, rotation_derivatives_kernel, gather_jacobian)
 def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f, S, order, threshold, max_hyp,
                        confidence, model, lens):
     """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried."""
@@ -78,17 +78,7 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
             break
         tried += 1
         j = order[t]
-        k = ks[j]
-        d = dims[kinds[k]]
-        c = POSE_DIM + d
-        for a in range(POSE_DIM):
-            idx[a] = a
-            h[0, a] = H_c[j, 0, a]
-            h[1, a] = H_c[j, 1, a]
-        for a in range(d):
-            idx[POSE_DIM + a] = starts[k] + a
-            h[0, POSE_DIM + a] = H_f[j, 0, a]
-            h[1, POSE_DIM + a] = H_f[j, 1, a]
+        c = gather_jacobian(j, ks, kinds, starts, dims, H_c, H_f, idx, h)
         # K_j nu_j = P H^T S^-1 nu_j
         s00, s01, s11 = S[j, 0, 0], S[j, 0, 1], S[j, 1, 1]
         det = s00 * s11 - s01 * s01

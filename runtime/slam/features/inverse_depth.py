@@ -38,12 +38,13 @@ import math
 
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, project_point_kernel, unproject_jacobian
+from kinematics.camera import CameraIntrinsics, unproject_jacobian
 
 from ..kernels import compiled_kernel
 from ..quaternion import quat_to_rotation, rotation_derivatives
 from ..state import POSE_DIM, Q_SLICE, R_SLICE
 from . import INVERSE_DEPTH
+from .ray import ray_kernel
 
 KIND = INVERSE_DEPTH
 DIM = 6
@@ -59,7 +60,7 @@ def direction_kernel(theta, phi):
     return m, dm_dt, dm_dp
 
 
-@compiled_kernel(project_point_kernel, direction_kernel)
+@compiled_kernel(ray_kernel, direction_kernel)
 def h_kernel(x, s, anchor, R, dR, model, lens, uv, H_c, H_f):
     """The inverse-depth feature ``x[s:s+6]`` (anchor rotation ``anchor``) seen from the camera
     ``x[0:7]``; as :func:`runtime.slam.features.point.h_kernel`, writing ``H_f[:, :6]``."""
@@ -69,29 +70,16 @@ def h_kernel(x, s, anchor, R, dR, model, lens, uv, H_c, H_f):
     dm_dt = anchor @ dm_dt_a
     dm_dp = anchor @ dm_dp_a
     e0, e1, e2 = x[s] - x[0], x[s + 1] - x[1], x[s + 2] - x[2]        # c - r
-    d0, d1, d2 = rho * e0 + m[0], rho * e1 + m[1], rho * e2 + m[2]
-    X = d0 * R[0, 0] + d1 * R[1, 0] + d2 * R[2, 0]
-    Y = d0 * R[0, 1] + d1 * R[1, 1] + d2 * R[2, 1]
-    Z = d0 * R[0, 2] + d1 * R[1, 2] + d2 * R[2, 2]
-    u, v, j00, j01, j02, j10, j11, j12 = project_point_kernel(model, lens, X, Y, Z)
-    uv[0], uv[1] = u, v
-    if not (Z > 0 and np.isfinite(u) and np.isfinite(v)):
-        H_c[:, :] = np.nan
+    JR = np.empty((2, 3))
+    # d = rho (c - r) + m(theta, phi): d(d)/dr = -rho I, d(d)/dc = rho I.
+    if not ray_kernel(rho * e0 + m[0], rho * e1 + m[1], rho * e2 + m[2], rho, R, dR, model, lens, uv, H_c, JR):
         H_f[:, :] = np.nan
         return False
     for a in range(2):
-        ja0, ja1, ja2 = (j00, j01, j02) if a == 0 else (j10, j11, j12)
-        for c in range(3):
-            h = ja0 * R[c, 0] + ja1 * R[c, 1] + ja2 * R[c, 2]    # (J R^T)[a, c]
-            H_f[a, c] = rho * h
-            H_c[a, c] = -rho * h
-        for i in range(4):
-            H_c[a, 3 + i] = (ja0 * (d0 * dR[i, 0, 0] + d1 * dR[i, 1, 0] + d2 * dR[i, 2, 0])
-                             + ja1 * (d0 * dR[i, 0, 1] + d1 * dR[i, 1, 1] + d2 * dR[i, 2, 1])
-                             + ja2 * (d0 * dR[i, 0, 2] + d1 * dR[i, 1, 2] + d2 * dR[i, 2, 2]))
         ht = hp = hr = 0.0
         for c in range(3):
-            jr = ja0 * R[c, 0] + ja1 * R[c, 1] + ja2 * R[c, 2]
+            jr = JR[a, c]
+            H_f[a, c] = rho * jr
             ht += jr * dm_dt[c]
             hp += jr * dm_dp[c]
             hr += jr * (e0 if c == 0 else (e1 if c == 1 else e2))
