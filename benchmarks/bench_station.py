@@ -221,6 +221,11 @@ def bench_saccades(cases=(("workbench-static", 0, 2.5), ("workbench-static", 2, 
                     time.sleep(0.05)
                 t_land = landed if landed is not None else t_click + 1.5
                 _wait_t(st, t_land + 2.0)
+                rows = [r for r in st.live.loop.log.rows if t_click <= r.t <= t_land + 2.0]
+                if landed is None and any(not r.reachable for r in rows):
+                    res.append((fid, off, float("nan"), "left the head's reach as the wearer moved; the wearer was "
+                                                        "prompted"))
+                    continue
                 times = np.array(st.live.run.times[:len(st.live.run.T_true)])
                 win = np.flatnonzero((times >= t_land) & (times <= t_land + 2.0))
                 p = corners[np.argmin(np.linalg.norm(corners - xyz, axis=1))]

@@ -167,6 +167,8 @@ class LoopRow:
     current fixation or saccade target (NaN if none). est_error_deg : the controller's own
     estimate of its error. T_est : (4, 4) SLAM's camera pose (NaN without SLAM). lost : SLAM
     lost this frame. polygon : (4, 2) the 2D tracker's region (NaN without). track_lost.
+    reachable : the target was within the head's reach (else the head held and the wearer was
+    prompted).
     """
 
     t: float
@@ -182,6 +184,7 @@ class LoopRow:
     lost: bool = False
     polygon: np.ndarray = field(default_factory=lambda: np.full((4, 2), np.nan))
     track_lost: bool = False
+    reachable: bool = True
 
     #: joints.csv's columns, in order.
     CSV_HEADER = ["t", *[f"cmd_{n}" for n in JOINT_NAMES], *[f"meas_{n}" for n in JOINT_NAMES],
@@ -398,7 +401,7 @@ class ClosedLoop:
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,
             target=np.asarray(tgt, float).copy(), est_error_deg=err, q_source=obs.q_source,
             T_est=slam.T_world_cam() if slam is not None else np.full((4, 4), np.nan), lost=lost,
-            polygon=np.asarray(poly, float), track_lost=track_lost))
+            polygon=np.asarray(poly, float), track_lost=track_lost, reachable=bool(cmd.reachable)))
         self._i += 1
         return JointCommand(cmd.q, cmd.qd, basis_t=self._basis_t)
 
