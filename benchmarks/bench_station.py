@@ -92,6 +92,35 @@ def _browser_rate(st, page, seconds):
     return (page.evaluate("window.station.frames") - f0) / dt, (st.live.latest().seq - s0) / dt
 
 
+def _stream_client_rate(st, seconds):
+    """A script reading /api/stream as fast as it comes (no browser on the machine): the frames
+    it got per second and the loop's rate meanwhile, so the station's own cost shows apart from
+    a co-located browser's."""
+    import threading
+    import urllib.request
+
+    got, stop = {"n": 0}, threading.Event()
+
+    def consume():
+        req = urllib.request.Request(st.public_url + "api/stream", headers={"Authorization": "Bearer " + st.token})
+        with urllib.request.urlopen(req) as r:
+            while not stop.is_set():
+                head = r.read(16)
+                if len(head) < 16:
+                    return
+                r.read(int.from_bytes(head[12:16], "big"))
+                got["n"] += 1
+
+    th = threading.Thread(target=consume, daemon=True)
+    th.start()
+    time.sleep(2.0)
+    n0, t0 = got["n"], time.perf_counter()
+    loop = _loop_rate(st, seconds)
+    fps = (got["n"] - n0) / (time.perf_counter() - t0)
+    stop.set()
+    return fps, loop
+
+
 def bench_camera_view(label, make_station, seconds=6.0):
     st = make_station()
     try:
@@ -99,7 +128,7 @@ def bench_camera_view(label, make_station, seconds=6.0):
         st.wait_started(180)
         time.sleep(2.0)
         alone = _loop_rate(st, seconds)
-        rows = []
+        rows = [("a script reading the stream (no browser)", *_stream_client_rate(st, seconds))]
         with headless_browser() as ctx:
             for variant, suffix in (("camera pane alone", "#camera"), ("whole page (3D view too)", "")):
                 page = ctx.new_page()
@@ -109,7 +138,7 @@ def bench_camera_view(label, make_station, seconds=6.0):
                 page.close()
         print(f"camera view, {label}: loop {alone:.1f} Hz without a browser", flush=True)
         for variant, fps, loop in rows:
-            print(f"  {variant}: {fps:.1f} frames/s drawn in Chromium (640x480), loop {loop:.1f} Hz "
+            print(f"  {variant}: {fps:.1f} frames/s {'read' if 'script' in variant else 'drawn in Chromium'} (640x480), loop {loop:.1f} Hz "
                   f"({100 * fps / max(loop, 1e-9):.0f}% of its frames; loop at {100 * loop / alone:.0f}% of its rate "
                   "alone; target >= 20 fps, rate unchanged)", flush=True)
     finally:
