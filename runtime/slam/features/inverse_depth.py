@@ -70,15 +70,14 @@ def h_kernel(x, s, anchor, R, dR, model, lens, uv, H_c, H_f):
     dm_dt = anchor @ dm_dt_a
     dm_dp = anchor @ dm_dp_a
     e0, e1, e2 = x[s] - x[0], x[s + 1] - x[1], x[s + 2] - x[2]        # c - r
-    JR = np.empty((2, 3))
-    # d = rho (c - r) + m(theta, phi): d(d)/dr = -rho I, d(d)/dc = rho I.
-    if not ray_kernel(rho * e0 + m[0], rho * e1 + m[1], rho * e2 + m[2], rho, R, dR, model, lens, uv, H_c, JR):
-        H_f[:, :] = np.nan
+    # d = rho (c - r) + m(theta, phi): d(d)/dr = -rho I, d(d)/dc = rho I. The ray writes its
+    # J R^T into H_f[:, :3], which the loop below turns into d(uv)/dc.
+    if not ray_kernel(rho * e0 + m[0], rho * e1 + m[1], rho * e2 + m[2], rho, R, dR, model, lens, uv, H_c, H_f):
         return False
     for a in range(2):
         ht = hp = hr = 0.0
         for c in range(3):
-            jr = JR[a, c]
+            jr = H_f[a, c]
             H_f[a, c] = rho * jr
             ht += jr * dm_dt[c]
             hp += jr * dm_dp[c]

@@ -27,13 +27,8 @@ def h_kernel(x, s, anchor, R, dR, model, lens, uv, H_c, H_f):
     (computed once per camera); ``anchor`` unused. Writes uv (2,) px, ``H_c`` (2, 7) =
     d(uv)/d(r, q) and ``H_f[:, :3]`` = d(uv)/dy, and returns whether the point has an image
     (in front of the camera, inside the lens model's domain); if not, they are NaN."""
-    JR = np.empty((2, 3))
-    ok = ray_kernel(x[s] - x[0], x[s + 1] - x[1], x[s + 2] - x[2], 1.0, R, dR, model, lens, uv, H_c, JR)
-    if not ok:
-        H_f[:, :] = np.nan
-        return False
-    H_f[:, :3] = JR                      # d = y - r: d(d)/dy = I
-    return True
+    # d = y - r: d(d)/dy = I, so d(uv)/dy is the ray's J R^T itself.
+    return ray_kernel(x[s] - x[0], x[s + 1] - x[1], x[s + 2] - x[2], 1.0, R, dR, model, lens, uv, H_c, H_f)
 
 
 def world_point(y, anchor=None) -> np.ndarray:

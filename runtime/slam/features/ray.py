@@ -22,9 +22,10 @@ from ..kernels import compiled_kernel
 def ray_kernel(d0, d1, d2, scale, R, dR, model, lens, uv, H_c, JR):
     """Project ``d`` (world frame) through the camera with rotation ``R`` (3, 3) and its
     quaternion derivatives ``dR`` (4, 3, 3). Writes uv (2,) px, ``H_c`` (2, 7) =
-    d(uv)/d(r, q) with ``d(d)/dr = -scale I``, and ``JR`` (2, 3) = J R^T = d(uv)/d(d). Returns
-    whether ``d`` has an image (in front of the camera, inside the lens model's domain); if not,
-    ``H_c`` and ``JR`` are NaN."""
+    d(uv)/d(r, q) with ``d(d)/dr = -scale I``, and ``JR[:, :3]`` = J R^T = d(uv)/d(d) (``JR``
+    (2, >= 3): the caller's feature Jacobian, which it then completes). Returns whether ``d``
+    has an image (in front of the camera, inside the lens model's domain); if not, ``H_c`` and
+    ``JR`` are NaN."""
     X = d0 * R[0, 0] + d1 * R[1, 0] + d2 * R[2, 0]
     Y = d0 * R[0, 1] + d1 * R[1, 1] + d2 * R[2, 1]
     Z = d0 * R[0, 2] + d1 * R[1, 2] + d2 * R[2, 2]
