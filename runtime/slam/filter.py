@@ -31,7 +31,7 @@ from .kernels import compiled_kernel
 from .measurement import Prediction, init_point_from_depth, predict
 from .motion import apply_quaternion_jacobian
 from .quaternion import normalise_quaternion_jacobian
-from .state import POSE_DIM, Q_SLICE, SlamNumericalError, State, check_covariance, check_mean
+from .state import POSE_DIM, Q_SLICE, SlamNumericalError, State, check_covariance, check_mean, mirror_upper
 
 __all__ = ["FeatureNotMeasurable", "UpdateResult", "FrameUpdate", "innovation_covariances", "update", "add_inverse_depth_feature",
            "add_point_feature", "convert_to_point"]
@@ -263,11 +263,28 @@ class FrameUpdate:
         st = self.state
         if self._U.shape[1] == 0:
             return
-        U = self._U
-        P = st.P - U @ U.T                                   # numpy's syrk: symmetric
+        U, P = self._U, st.P
         _, J = normalise_quaternion_jacobian(self.x[Q_SLICE])
-        apply_quaternion_jacobian(P, J)
-        st.P = check_covariance(P, "update", check_psd=False, describe=st.describe)
+        # Everything the guard needs, before P is touched: U finite (so is P - U U^T), the new
+        # variances, and the quaternion's rows after the normalisation Jacobian.
+        rows = J @ (P[Q_SLICE, :] - U[Q_SLICE] @ U.T)
+        qq = rows[:, Q_SLICE] @ J.T
+        rows[:, Q_SLICE] = 0.5 * (qq + qq.T)
+        d = np.diag(P) - np.einsum("ij,ij->i", U, U)
+        d[Q_SLICE] = np.diag(rows[:, Q_SLICE])
+        tol = 1e-9 * max(float(d.max()), np.finfo(float).tiny)
+        if not (P.flags.c_contiguous and np.isfinite(U).all() and np.isfinite(rows).all() and d.min() >= -tol):
+            P = st.P - U @ U.T                               # the guard names the problem
+            apply_quaternion_jacobian(P, J)
+            st.P = check_covariance(P, "update", check_psd=False, describe=st.describe)
+            st.x = self.x
+            return
+        # In place: BLAS's rank-2m update of one triangle (P's C buffer read as Fortran order
+        # is the same symmetric matrix), mirrored, then the quaternion's rows and columns.
+        scipy.linalg.blas.dsyrk(-1.0, U.T, beta=1.0, c=P.T, trans=1, lower=1, overwrite_c=1)
+        mirror_upper(P)
+        P[Q_SLICE, :] = rows
+        P[:, Q_SLICE] = rows.T
         st.x = self.x
 
 

@@ -7,7 +7,7 @@ The score is ``2 (1 - ZNCC)`` as in search.py (0 for identical patches up to gai
 2 for unrelated ones); a warped template that matches nothing is retried as first seen (the
 plane guess may be wrong). The templates are warped in one compiled pass; the correlation is
 OpenCV's ``matchTemplate`` over each ellipse's box (faster than compiled loops here); windows
-too flat to hold a match are excluded through the frame's integral images.
+too flat to hold a match are excluded by their variance.
 
 The best position is refined to sub-pixel precision by Gauss-Newton on the template under an
 affine warp about its centre (Lucas-Kanade, inverse compositional; the shape is damped towards
@@ -82,22 +82,32 @@ def _warp(patch, H, t):
 
 
 @compiled_kernel()
-def _box(ii, u0, v0, u1, v1):
-    """Sum over rows v0..v1 and columns u0..u1 (inclusive) from an integral image."""
-    return ii[v1 + 1, u1 + 1] - ii[v0, u1 + 1] - ii[v1 + 1, u0] + ii[v0, u0]
-
-
-@compiled_kernel(_box)
-def _best_in_ellipse(ncc, ii, ii2, u0, v0, h, uv, S, n2):
+def _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2):
     """The least score ``2 (1 - ZNCC)`` among the window positions inside the ellipse ``n2`` of
-    S at uv (``ncc`` (nv, nu): OpenCV's TM_CCOEFF_NORMED for the box whose top-left position is
-    pixel (u0, v0)), flat windows excluded, with a parabolic sub-pixel fit through the
-    neighbours in each direction when both are inside. Returns (u, v, score); score 2 if none."""
+    S at uv (``ncc`` (nv, nu): OpenCV's TM_CCOEFF_NORMED of the template over ``roi``, the
+    image from pixel (u0 - h, v0 - h), so that ncc[j, i] is the window centred on (u0 + i,
+    v0 + j)), flat windows excluded, with a parabolic sub-pixel fit through the neighbours in
+    each direction when both are inside. Returns (u, v, score); score 2 if none."""
     nv, nu = ncc.shape
+    # The windows' sums and sums of squares from the region's own integral images (the region
+    # is what matchTemplate read: a few thousand pixels, not the whole image).
+    rh, rw = roi.shape
+    ii = np.zeros((rh + 1, rw + 1))
+    ii2 = np.zeros((rh + 1, rw + 1))
+    for y in range(rh):
+        row = 0.0
+        row2 = 0.0
+        for x in range(rw):
+            g = np.float64(roi[y, x])
+            row += g
+            row2 += g * g
+            ii[y + 1, x + 1] = ii[y, x + 1] + row
+            ii2[y + 1, x + 1] = ii2[y, x + 1] + row2
     a, b, c = S[0, 0], S[0, 1], S[1, 1]
     det = a * c - b * b
     iaa, iab, ibb = c / det, -b / det, a / det
-    n = (2 * h + 1) * (2 * h + 1)
+    t = 2 * h + 1
+    n = t * t
     grid = np.full((nv, nu), np.inf)
     best, bi, bj = np.inf, -1, -1
     for j in range(nv):
@@ -106,9 +116,9 @@ def _best_in_ellipse(ncc, ii, ii2, u0, v0, h, uv, S, n2):
             du = u0 + i - uv[0]
             if iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv > n2:
                 continue
-            u, v = u0 + i, v0 + j
-            sw = _box(ii, u - h, v - h, u + h, v + h)
-            if _box(ii2, u - h, v - h, u + h, v + h) - sw * sw / n < FLAT_VARIANCE * n:
+            sw = ii[j + t, i + t] - ii[j, i + t] - ii[j + t, i] + ii[j, i]
+            sw2 = ii2[j + t, i + t] - ii2[j, i + t] - ii2[j + t, i] + ii2[j, i]
+            if sw2 - sw * sw / n < FLAT_VARIANCE * n:
                 continue
             s = 2.0 * (1.0 - ncc[j, i])
             grid[j, i] = s
@@ -253,7 +263,7 @@ def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, 
     return out, done
 
 
-def _search(grey, ii, tpl, uv, S, n2, max_area):
+def _search(grey, tpl, uv, S, n2, max_area):
     """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
@@ -267,8 +277,9 @@ def _search(grey, ii, tpl, uv, S, n2, max_area):
     v0, v1 = max(math.floor(uv[1] - hv), h), min(math.ceil(uv[1] + hv), H - 1 - h)
     if u1 < u0 or v1 < v0:
         return np.nan, np.nan, 2.0
-    ncc = cv2.matchTemplate(grey[v0 - h:v1 + h + 1, u0 - h:u1 + h + 1], tpl, cv2.TM_CCOEFF_NORMED)
-    u, v, s = _best_in_ellipse(ncc, ii[0], ii[1], u0, v0, h, uv, S, n2)
+    roi = grey[v0 - h:v1 + h + 1, u0 - h:u1 + h + 1]
+    ncc = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
+    u, v, s = _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2)
     if np.isfinite(u):
         ur, vr, ok = refine_affine_kernel(grey, tpl, u, v, 10, 0.005, AFFINE_DAMPING)
         if ok:
@@ -276,13 +287,7 @@ def _search(grey, ii, tpl, uv, S, n2, max_area):
     return u, v, s
 
 
-def integral_images(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The grey image's integral image and integral of squares (float64), for window sums."""
-    ii, ii2 = cv2.integral2(grey, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    return ii, ii2
-
-
-def match_features(grey: np.ndarray, ii: tuple[np.ndarray, np.ndarray], features: list[MapFeature], warp: np.ndarray,
+def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarray,
                    Y: np.ndarray, x_v: np.ndarray, cam: CameraIntrinsics, uv: np.ndarray, S: np.ndarray,
                    max_score: float, max_area: float, n_sigma: float = 3.0
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -318,9 +323,9 @@ def match_features(grey: np.ndarray, ii: tuple[np.ndarray, np.ndarray], features
                                np.ascontiguousarray(x_v[:3], float), quat_to_rotation(x_v[3:7]), model, lens)
     n2 = n_sigma * n_sigma
     for i in range(m):
-        u, v, s = _search(grey, ii, tpls[i], uv[i], S[i], n2, max_area)
+        u, v, s = _search(grey, tpls[i], uv[i], S[i], n2, max_area)
         if s > max_score and warped[i]:
-            u, v, s = _search(grey, ii, templates[i], uv[i], S[i], n2, max_area)
+            u, v, s = _search(grey, templates[i], uv[i], S[i], n2, max_area)
         z[i], score[i] = (u, v), s
     found = score <= max_score
     return z, score, found

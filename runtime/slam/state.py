@@ -118,6 +118,42 @@ def _symmetric_and_finite(P):
     return True
 
 
+@compiled_kernel()
+def mirror_upper(P):
+    """Copy the square C-contiguous ``P``'s upper triangle onto its lower one, in place (after a
+    BLAS rank update that wrote one triangle), tile by tile as :func:`_symmetric_and_finite`."""
+    n = P.shape[0]
+    for i0 in range(0, n, _TILE):
+        for j0 in range(i0, n, _TILE):
+            for i in range(i0, min(i0 + _TILE, n)):
+                for j in range(max(j0, i + 1), min(j0 + _TILE, n)):
+                    P[j, i] = P[i, j]
+
+
+@compiled_kernel()
+def _rebuild_kernel(P, old_keep, new_keep, R, new_conv, B, n_new):
+    """The covariance after features leave or change kind: entries that only move
+    (``P[old_keep][:, old_keep]`` to ``new_keep``), converted rows ``R`` (D, n_old) placed at
+    ``new_conv`` (D,) against the moved columns and as their transposes, and the converted
+    features' joint block ``B`` (D, D), symmetric. Returns the new (n_new, n_new) array."""
+    out = np.empty((n_new, n_new))
+    m = len(old_keep)
+    for a in range(m):
+        ia = old_keep[a]
+        oa = new_keep[a]
+        for b in range(m):
+            out[oa, new_keep[b]] = P[ia, old_keep[b]]
+    for c in range(len(new_conv)):
+        oc = new_conv[c]
+        for b in range(m):
+            v = R[c, old_keep[b]]
+            out[oc, new_keep[b]] = v
+            out[new_keep[b], oc] = v
+        for e in range(len(new_conv)):
+            out[oc, new_conv[e]] = B[c, e]
+    return out
+
+
 def check_mean(x: np.ndarray, where: str = "", describe=None) -> np.ndarray:
     """Raise :class:`SlamNumericalError` if the state vector has NaN/Inf; return it."""
     bad = np.flatnonzero(~np.isfinite(x))
@@ -129,19 +165,22 @@ def check_mean(x: np.ndarray, where: str = "", describe=None) -> np.ndarray:
 
 
 def check_covariance(P: np.ndarray, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True,
-                     describe=None) -> np.ndarray:
+                     describe=None, built_symmetric: bool = False) -> np.ndarray:
     """The symmetric-PSD guard: return ``(P + P^T) / 2`` after checking it (``P`` itself when it
     is already exactly symmetric).
 
     Raises :class:`SlamNumericalError` naming the problem if ``P`` is not square, has NaN/Inf,
     has a negative variance, or (``check_psd``) an eigenvalue below
     ``-psd_rel_tol * max(diag P)`` (tested by a Cholesky factorisation of ``P + tol I``).
+    ``built_symmetric``: the caller assembled ``P`` exactly symmetric from parts it checked
+    finite, so the O(n^2) scan for NaN/Inf and asymmetry is skipped (the variances are still
+    checked).
     """
     describe = describe or (lambda i: f"index {i}")
     P = np.asarray(P, dtype=float)
     if P.ndim != 2 or P.shape[0] != P.shape[1]:
         raise SlamNumericalError(f"covariance P{_where(where)} must be square, got shape {P.shape}")
-    if not (P.flags.c_contiguous and _symmetric_and_finite(P)):
+    if not (P.flags.c_contiguous and (built_symmetric or _symmetric_and_finite(P))):
         finite = np.isfinite(P)
         if not finite.all():
             i, j = np.argwhere(~finite)[0]
@@ -180,8 +219,8 @@ class State:
     """Mean ``x`` (n,), covariance ``P`` (n, n), and the layout: ``cam_dim`` (13 or 19), each
     feature's ``kinds`` (N,) and ``anchors`` (N, 3, 3); ``starts`` (N,) is derived.
 
-    The arrays are owned (copied on construction) and replaced, not resized in place, by the
-    filter's steps.
+    The arrays are owned (copied on construction); the filter's steps update ``P`` in place or
+    replace it, never resize it in place.
     """
 
     x: np.ndarray
@@ -330,8 +369,12 @@ class State:
         P_new[n:, :n] = P_yx
         P_new[:n, n:] = P_yx.T
         P_new[n:, n:] = 0.5 * (P_yy + P_yy.T)
+        # The old P passed the guard; the new blocks are written symmetric, so only their
+        # finiteness needs a look unless the guard must name a bad entry.
+        parts_finite = bool(np.isfinite(P_yx).all() and np.isfinite(P_yy).all())
         P_new = check_covariance(P_new, "add_feature", check_psd=check_psd,
-                                 describe=lambda i: self.describe(i) if i < n else new_name(i))
+                                 describe=lambda i: self.describe(i) if i < n else new_name(i),
+                                 built_symmetric=parts_finite)
         A = np.tile(np.eye(3), (len(kinds), 1, 1)) if anchors is None else np.asarray(anchors, float).reshape(-1, 3, 3)
         self.x, self.P = np.concatenate([self.x, y]), P_new
         self.kinds = np.concatenate([self.kinds, np.array(kinds, np.intp)])
@@ -349,8 +392,10 @@ class State:
         for k in ks:
             keep[self.feature_slice(k)] = False
         kept = np.setdiff1d(np.arange(self.n_features), ks)
+        idx = np.flatnonzero(keep)
         self.x = self.x[keep]
-        self.P = np.ascontiguousarray(self.P[np.ix_(keep, keep)])
+        self.P = _rebuild_kernel(self.P, idx, np.arange(len(idx)), np.zeros((0, self.n)), np.zeros(0, np.intp),
+                                 np.zeros((0, 0)), len(idx))
         self.kinds = self.kinds[kept]
         self.anchors = self.anchors[kept]
         self.starts = feature_starts(self.cam_dim, self.kinds)
@@ -395,16 +440,14 @@ class State:
         for _, ns, _, _ in conv.values():
             new_keep[ns] = False
         new_keep = np.flatnonzero(new_keep)
-        A = np.empty((n_new, self.n))                           # T P
-        A[new_keep] = self.P[old_keep]
-        for sl, ns, _, J in conv.values():
-            A[ns] = J @ self.P[sl]
-        P = np.empty((n_new, n_new))                            # (T P) T^T
-        P[:, new_keep] = A[:, old_keep]
-        for sl, ns, _, J in conv.values():
-            P[:, ns] = A[:, sl] @ J.T
-        for _, ns, _, _ in conv.values():                       # symmetric by construction, but
-            P[ns, :] = P[:, ns].T                               # written once, as the transpose
+        # P <- T P T^T: the converted features' rows R = J P_y,: (D, n), their joint block
+        # R_k,sl_j J_j^T, and every other entry moved.
+        R = np.concatenate([J @ self.P[sl] for sl, _, _, J in conv.values()])
+        offs = np.cumsum([0] + [J.shape[0] for _, _, _, J in conv.values()])
+        B = np.concatenate([np.concatenate([R[o:o2, sl] @ J.T for sl, _, _, J in conv.values()], axis=1)
+                            for o, o2 in zip(offs[:-1], offs[1:])])
+        new_conv = np.concatenate([np.arange(ns.start, ns.stop) for _, ns, _, _ in conv.values()])
+        P = _rebuild_kernel(self.P, old_keep, new_keep, R, new_conv, 0.5 * (B + B.T), n_new)
         x = np.empty(n_new)
         x[new_keep] = self.x[old_keep]
         for _, ns, y, _ in conv.values():

@@ -50,7 +50,7 @@ from .motion import f_and_dfdx, predict as predict_cv
 from .quaternion import quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
-from .matching import integral_images, match_features
+from .matching import match_features
 from .search import extract_template, search
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, start_hypotheses
 from .state import BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, POSE_DIM, SlamNumericalError, State, check_covariance
@@ -297,7 +297,7 @@ class _Track:
         feats = [self.features[k] for k in pred.ks]
         Y = self.world_points()[pred.ks] if m else np.zeros((0, 3))
         warp = np.array([slam.warped(f) for f in feats], bool)
-        z, _, found = match_features(g, slam.integrals, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
+        z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
                                      s.match_score, s.max_search_area_px)
         z[~found] = np.nan
         for f in feats:
@@ -737,7 +737,6 @@ class MonoSLAM:
         t_prev = self.t_prev
         self.t_prev = t
         g = grey(image)
-        self.integrals = integral_images(g)
         rows = self.imu.covering(t_prev, t) if (self.settings.use_imu and len(self.imu.rows)) else None
         stats = []
         for tr in self._tracks:

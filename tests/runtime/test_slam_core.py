@@ -223,6 +223,15 @@ def test_offset_table_through_additions_removals_and_conversions(cam_dim):
             ids = np.flatnonzero(s.kinds == INVERSE_DEPTH)
             if not len(ids):
                 continue
+            if len(ids) >= 2 and step % 3 == 0:          # several at once: their joint block too
+                ks = rng.choice(ids, size=int(rng.integers(2, len(ids) + 1)), replace=False).tolist()
+                conv = [inverse_depth.to_point(s.feature(k), s.anchors[k]) for k in ks]
+                convert_to_point(s, ks)
+                for k, (p, J) in zip(ks, conv):
+                    ref.convert(k, POINT, p, J)
+                ops[op] += 1
+                ref.check(s)
+                continue
             k = int(rng.choice(ids))
             p, J = inverse_depth.to_point(s.feature(k), s.anchors[k])
             if step % 2:
