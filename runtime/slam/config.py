@@ -112,6 +112,7 @@ class MapSettings:
     reloc_every: int = 3
     reloc_min_inliers: int = 5
     reloc_min_confirmed: int = 6
+    reloc_confirm_fraction: float = 0.25  # and this fraction of the features searched at the found pose
     reloc_sigma_m: float = 0.02
     reloc_sigma_rad: float = 0.02
     # -- start-up from the known target --

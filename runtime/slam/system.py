@@ -189,7 +189,7 @@ class _Track:
             self._normals_from_map()        # neighbours' planes change slowly: every few frames
         self._measure(g, st, frame)
         if lost:
-            if st.matched < max(s.reloc_min_confirmed, st.searched / 2):
+            if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
                 self.state.x, self.state.P = saved
                 for f, (a, b) in zip(self.features, counts):
                     f.attempts, f.successes = a, b
