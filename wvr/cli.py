@@ -449,8 +449,7 @@ def cmd_head(args) -> int:
     """Bring-up moves at a slow, stated rate; nothing beyond the head's range is ever sent."""
     import math
 
-    from runtime.drivers.maestro import Maestro
-    from runtime.drivers.rig import ServoBoard, load_rig
+    from runtime.drivers.rig import load_rig, open_servo_board
     from runtime.drivers.safety import EStop
 
     cfg = load_rig(args.rig)
@@ -489,16 +488,16 @@ def cmd_head(args) -> int:
     if not 0 < rate <= float(np.min(cfg.speed_limit_rad_s)):
         raise ValueError(f"--rate {args.rate:g} deg/s must be positive and at most the board's "
                          f"{math.degrees(float(np.min(cfg.speed_limit_rad_s))):.0f} deg/s")
-    board = ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device))
+    board = open_servo_board(cfg)
     try:
         board.start()
         print(f"moving at {args.rate:g} deg/s (the board's speed limit for the move)")
         for q in poses:
             reached = board.move_slowly(q, rate, timeout_s=args.timeout)
             print("at " + ", ".join(f"{n} {math.degrees(v):.1f}" for n, v in zip(JOINT_NAMES, reached)) + " deg")
-        board.maestro.check_errors()
+        board.check_errors()
     finally:
-        board.maestro.close()
+        board.close()
     return 0
 
 

@@ -1,6 +1,6 @@
 """The hardware rig: ``rig.toml`` read and checked, and :class:`HardwareRig`, a
-:class:`runtime.robot.Robot` over the Maestro, the camera and the IMU with the safety chain in
-between.
+:class:`runtime.robot.Robot` over the servos (a Pololu Maestro with hobby servos, or Dynamixel
+X-series smart servos), the camera and the IMU with the safety chain in between.
 
 rig.toml (the contract; the keys marked optional may be left out)::
 
@@ -44,6 +44,22 @@ rig.toml (the contract; the keys marked optional may be left out)::
     [start]                       # optional
     target = "target.toml"        # the known target and its clicked pixels in the first image
 
+A head with Dynamixel X-series servos (runtime.drivers.dynamixel) has instead::
+
+    [servo]
+    driver = "dynamixel"
+    port = "/dev/ttyUSB0"         # the U2D2 (or any Protocol 2.0 adapter)
+    ids = { elevation = 1, pan = 2, cyclotorsion = 3 }
+    baud = 57600                  # optional: the servos' baud rate
+    watchdog_ms = 100             # optional: each servo's bus watchdog (20..2540 ms)
+    speed_limit_deg_s, accel_limit_deg_s2, home_deg as above
+    [servo.calibration.elevation]
+    zero_ticks = 2048.0           # position at 0 deg
+    ticks_per_deg = 11.3778       # 4096 / 360 on X-series
+    sign = 1
+    min_ticks = 1024.0            # inside the servo's own position limits
+    max_ticks = 3072.0
+
 Every error is one line naming the key and the fix; a joint range of the head that the
 calibration cannot reach inside ``min_us..max_us`` is refused with the joint named.
 """
@@ -61,9 +77,10 @@ from kinematics import JOINT_NAMES, HeadGeometry, load_head, reference_head
 from kinematics.camera import CameraIntrinsics, load_camera
 from kinematics.tomlfile import read_toml
 
-from ..robot import JOINTS_COMMANDED, ImuSamples, JointCommand, Observation, RobotInfo
+from ..robot import JOINTS_COMMANDED, JOINTS_MEASURED, ImuSamples, JointCommand, Observation, RobotInfo
 from . import DriverError
 from .calibration import ServoCalibration
+from .dynamixel import DynamixelBoard, DynamixelBus, TickCalibration
 from .maestro import Maestro, accel_units, speed_units
 from .safety import EStop, SafetyChain, SafetySettings
 
@@ -76,7 +93,10 @@ _KEYS = {
     "": {"head", "servo", "camera", "imu", "safety", "start"},
     "servo": {"driver", "port", "channels", "baud", "device", "speed_limit_deg_s", "accel_limit_deg_s2", "home_deg",
               "calibration"},
+    "servo-dynamixel": {"driver", "port", "ids", "baud", "watchdog_ms", "speed_limit_deg_s", "accel_limit_deg_s2",
+                        "home_deg", "calibration"},
     "calibration": {"neutral_us", "us_per_deg", "sign", "min_us", "max_us"},
+    "calibration-dynamixel": {"zero_ticks", "ticks_per_deg", "sign", "min_ticks", "max_ticks"},
     "camera": {"source", "camera_toml", "fps", "timeout_s"},
     "imu": {"driver", "port", "baud", "R_cam_imu", "anchor", "gyro_bias", "accel_bias", "rate_hz"},
     "safety": {"motion_limit_deg_s", "pose_timeout_s", "hold_s", "home_rate_deg_s", "estop_file", "heartbeat_timeout_s"},
@@ -89,8 +109,8 @@ class RigConfig:
     path: Path
     head: HeadGeometry
     port: str
-    channels: tuple[int, int, int]
-    calibration: tuple[ServoCalibration, ServoCalibration, ServoCalibration]
+    channels: tuple[int, int, int]                  # Maestro channels, or Dynamixel IDs
+    calibration: tuple                              # ServoCalibration (Maestro) or TickCalibration (Dynamixel) x 3
     camera: CameraIntrinsics
     camera_source: object
     baud: int = 115200
@@ -111,6 +131,8 @@ class RigConfig:
     safety: SafetySettings = field(default_factory=SafetySettings)
     estop_file: Path | None = None
     start_target: Path | None = None
+    servo_driver: str = "maestro"
+    watchdog_s: float = 0.1                         # Dynamixel: each servo's bus watchdog
 
     @property
     def base(self) -> Path:
@@ -170,23 +192,28 @@ def load_rig(path: str | Path) -> RigConfig:
         if t not in d or not isinstance(d[t], dict):
             _fail(path, f"[{t}]", "missing table; add it (see the README's rig section)")
     sv = d["servo"]
-    _check_keys(path, sv, "servo", "servo")
-    if sv.get("driver") != "maestro":
-        _fail(path, "servo.driver", f"{sv.get('driver')!r}: the supported servo driver is \"maestro\"")
+    driver = sv.get("driver")
+    if driver not in ("maestro", "dynamixel"):
+        _fail(path, "servo.driver", f"{driver!r}: use \"maestro\" (hobby servos) or \"dynamixel\" (X-series)")
+    dxl = driver == "dynamixel"
+    _check_keys(path, sv, "servo-dynamixel" if dxl else "servo", "servo")
     if not isinstance(sv.get("port"), str) or not sv["port"]:
-        _fail(path, "servo.port", "missing; give the Maestro's command port, e.g. \"/dev/ttyACM0\"")
-    ch = sv.get("channels")
+        _fail(path, "servo.port", "missing; give the " + ("Dynamixel bus's port, e.g. \"/dev/ttyUSB0\"" if dxl
+                                                          else "Maestro's command port, e.g. \"/dev/ttyACM0\""))
+    key, what, top = ("ids", "servo ID", 252) if dxl else ("channels", "channel number", 23)
+    ch = sv.get(key)
     if not isinstance(ch, dict) or set(ch) != set(JOINT_NAMES):
-        _fail(path, "servo.channels", f"must map each of {', '.join(JOINT_NAMES)} to a channel number, e.g. "
-                                      "{ elevation = 0, pan = 1, cyclotorsion = 2 }")
+        _fail(path, f"servo.{key}", f"must map each of {', '.join(JOINT_NAMES)} to a {what}, e.g. "
+                                    + ("{ elevation = 1, pan = 2, cyclotorsion = 3 }" if dxl
+                                       else "{ elevation = 0, pan = 1, cyclotorsion = 2 }"))
     channels = []
     for n in JOINT_NAMES:
         c = ch[n]
-        if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= 23:
-            _fail(path, f"servo.channels.{n}", f"{c!r} must be a channel number 0..23")
+        if isinstance(c, bool) or not isinstance(c, int) or not int(dxl) <= c <= top:
+            _fail(path, f"servo.{key}.{n}", f"{c!r} must be a {what} {int(dxl)}..{top}")
         channels.append(c)
     if len(set(channels)) != 3:
-        _fail(path, "servo.channels", f"{channels}: each joint needs its own channel")
+        _fail(path, f"servo.{key}", f"{channels}: each joint needs its own {what}")
     cal_d = sv.get("calibration")
     if not isinstance(cal_d, dict):
         _fail(path, "[servo.calibration.<joint>]", f"missing; add a table for each of {', '.join(JOINT_NAMES)}")
@@ -194,25 +221,32 @@ def load_rig(path: str | Path) -> RigConfig:
     for j, n in enumerate(JOINT_NAMES):
         c = cal_d.get(n)
         where = f"servo.calibration.{n}"
+        keys = ("zero_ticks", "ticks_per_deg", "min_ticks", "max_ticks") if dxl else \
+            ("neutral_us", "us_per_deg", "min_us", "max_us")
         if not isinstance(c, dict):
-            _fail(path, f"[{where}]", "missing table; add neutral_us, us_per_deg, sign, min_us, max_us")
-        _check_keys(path, c, "calibration", where)
+            _fail(path, f"[{where}]", f"missing table; add {', '.join(keys[:2])}, sign, {', '.join(keys[2:])}")
+        _check_keys(path, c, "calibration-dynamixel" if dxl else "calibration", where)
         sign = c.get("sign")
         if sign not in (1, -1) or isinstance(sign, bool):
             _fail(path, f"{where}.sign", f"{sign!r} must be 1 or -1 (which way a positive angle turns)")
+        zero, per, lo_v, hi_v = (_number(path, c, k, where, positive=not (dxl and k != "ticks_per_deg")) for k in keys)
         try:
-            cal = ServoCalibration(_number(path, c, "neutral_us", where), _number(path, c, "us_per_deg", where), int(sign),
-                                   _number(path, c, "min_us", where), _number(path, c, "max_us", where))
+            cal = TickCalibration(zero, per, int(sign), lo_v, hi_v) if dxl else \
+                ServoCalibration(zero, per, int(sign), lo_v, hi_v)
         except DriverError as e:
             _fail(path, f"[{where}]", str(e))
         lo, hi = cal.angle_range()
         if head.lower[j] < lo - 1e-9 or head.upper[j] > hi + 1e-9:
+            unit = "ticks outside min_ticks..max_ticks" if dxl else "pulses outside min_us..max_us"
             _fail(path, f"[{where}]", f"the head's {n} range {math.degrees(head.lower[j]):.1f}..{math.degrees(head.upper[j]):.1f} "
-                                      f"deg needs pulses outside min_us..max_us (reachable {math.degrees(lo):.1f}.."
-                                      f"{math.degrees(hi):.1f} deg); widen min_us/max_us if the board allows, or "
+                                      f"deg needs {unit} (reachable {math.degrees(lo):.1f}.."
+                                      f"{math.degrees(hi):.1f} deg); widen {keys[2]}/{keys[3]} if the servo allows, or "
                                       f"narrow the joint's range in head.toml")
         cals.append(cal)
-    baud = int(_number(path, sv, "baud", "servo", 115200))
+    baud = int(_number(path, sv, "baud", "servo", 57600 if dxl else 115200))
+    watchdog_s = _number(path, sv, "watchdog_ms", "servo", 100.0) / 1000.0
+    if not 0.02 <= watchdog_s <= 2.54:
+        _fail(path, "servo.watchdog_ms", f"{1000 * watchdog_s:g} must lie in 20..2540 ms (the servos' 20 ms units)")
     device = sv.get("device")
     if device is not None and (isinstance(device, bool) or not isinstance(device, int) or not 0 <= device <= 127):
         _fail(path, "servo.device", f"{device!r} must be the board's device number 0..127 (default 12)")
@@ -281,7 +315,7 @@ def load_rig(path: str | Path) -> RigConfig:
                      imu_rate_hz=_number(path, im, "rate_hz", "imu", 100.0 if drv == "bno085-rvc" else 200.0),
                      gyro_bias=_vector(path, im, "gyro_bias", "imu", default=np.zeros(3)),
                      accel_bias=_vector(path, im, "accel_bias", "imu", default=np.zeros(3)),
-                     safety=safety, estop_file=estop, start_target=start)
+                     safety=safety, estop_file=estop, start_target=start, servo_driver=driver, watchdog_s=watchdog_s)
 
 
 class ServoBoard:
@@ -329,6 +363,12 @@ class ServoBoard:
         return np.array([float(c.to_rad(self.maestro.get_position(ch) / 4.0))
                          for c, ch in zip(self.cfg.calibration, self.cfg.channels)])
 
+    def check_errors(self) -> None:
+        self.maestro.check_errors()
+
+    def close(self) -> None:
+        self.maestro.close()
+
     def move_slowly(self, q_goal, rate_rad_s: float, timeout_s: float = 30.0, on_progress=None) -> np.ndarray:
         """Go to ``q_goal`` with the board's speed limit at ``rate_rad_s`` (the board ramps), and
         wait until the outputs arrive (or the time-out); restores the rig's speed limits."""
@@ -352,19 +392,29 @@ class ServoBoard:
         return q
 
 
+def open_servo_board(cfg: RigConfig):
+    """The rig's servo board: a :class:`ServoBoard` over the Maestro, or a
+    :class:`runtime.drivers.dynamixel.DynamixelBoard` (both: ``start``, ``send``, ``positions``,
+    ``move_slowly``, ``check_errors``, ``close``)."""
+    if cfg.servo_driver == "dynamixel":
+        return DynamixelBoard(cfg, DynamixelBus(cfg.port, cfg.baud, cfg.channels))
+    return ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device))
+
+
 class HardwareRig:
     """The real head as a :class:`runtime.robot.Robot`: ``reset`` starts the board and reads the
     first frame, ``step`` passes the command through the safety chain, sends it, and waits for
     the next frame; the joint angles observed are the board's ramped outputs (hobby servos have
-    no encoders: ``q_source = "commanded"``)."""
+    no encoders: ``q_source = "commanded"``) or a Dynamixel's encoders (``"measured"``)."""
 
     def __init__(self, cfg: RigConfig):
         from .camera import open_camera
         from .imu import ImuReader
 
         self.cfg = cfg
-        self.maestro = Maestro.open(cfg.port, cfg.baud, cfg.device)
-        self.board = ServoBoard(cfg, self.maestro)
+        self.board = open_servo_board(cfg)
+        self.maestro = getattr(self.board, "maestro", None)
+        self.q_source = JOINTS_MEASURED if cfg.servo_driver == "dynamixel" else JOINTS_COMMANDED
         self.camera = None
         self.imu = None
         try:
@@ -408,19 +458,19 @@ class HardwareRig:
             self.imu.anchor_at(frame.t)
         self._imu_until(frame.t)            # drop what came before the first frame
         self.t = frame.t
-        return Observation(frame.t, frame.image, ImuSamples(), q0, JOINTS_COMMANDED)
+        return Observation(frame.t, frame.image, ImuSamples(), q0, self.q_source)
 
     def step(self, command: JointCommand) -> Observation:
         if self.t is None:
             raise RuntimeError("call reset() first")
         q = self.chain.apply(command, self.t, 1.0 / self.cfg.fps)
         self.sent_qus.append(self.board.send(q))
-        self.maestro.check_errors()
+        self.board.check_errors()
         q_board = self.board.positions()
         frame = self.camera.read(self.cfg.camera_timeout_s)
         imu = self._imu_until(frame.t)
         self.t = frame.t
-        return Observation(frame.t, frame.image, imu, q_board, JOINTS_COMMANDED)
+        return Observation(frame.t, frame.image, imu, q_board, self.q_source)
 
     def heartbeat(self, t: float) -> None:
         self.chain.watchdog.heartbeat(t)
@@ -449,4 +499,4 @@ class HardwareRig:
                     dev.close()
                 except Exception:  # noqa: BLE001 - closing must not hide the fault being reported
                     pass
-        self.maestro.close()
+        self.board.close()
