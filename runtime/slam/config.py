@@ -88,7 +88,7 @@ class MapSettings:
     ransac_threshold_px: float = 2.0     # low-innovation inliers: within this of a hypothesis
     ransac_max_hypotheses: int = 60
     ransac_confidence: float = 0.99
-    rescue_chi2: float = 9.21            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 99%)
+    rescue_chi2: float = 4.61            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 90%)
     # -- deletion, visibility, matching --
     delete_min_attempts: int = 10
     delete_ratio: float = 0.5
@@ -123,6 +123,7 @@ class MapSettings:
     start_max_rms_px: float = 1.5        # the refined corners must fit one pose this well
     ambiguity_ratio: float = 4.0         # keep the second planar PnP pose if its error is within this
     ambiguity_frames: int = 60           # frames to decide between the two, at most
+    ambiguity_gate_chi2: float = 9.21    # their evidence: a miss or an outlier costs this (chi2, 2 dof, 99%)
     init_sigma_v: float = 0.3
     init_sigma_w: float = 0.5
     # -- template warping (plane-induced homographies) --

@@ -308,7 +308,7 @@ class _Track:
         self.last = SearchView(np.array([self.features[k].id for k in pred.ks], int), pred.uv.copy(), S.copy(), z,
                                np.zeros(m, bool), pred.ks.copy())
         if not found.any():
-            self.score -= 0.5 * s.rescue_chi2 * m
+            self.score -= 0.5 * s.ambiguity_gate_chi2 * m
             return visible
         fi = np.flatnonzero(found)
         sub = Prediction(pred.ks[fi], pred.uv[fi], pred.H_c[fi], pred.H_f[fi], pred.valid[fi])
@@ -325,7 +325,7 @@ class _Track:
         st.rescued = int(res.rescued.sum())
         st.outliers = res.n_outliers
         # Evidence for this track's start-up hypothesis: the prior innovations' Mahalanobis
-        # distances, capped at the rescue gate (a miss or an outlier costs the gate).
+        # distances, capped at a gate (a miss or an outlier costs the gate).
         nu = z[fi] - sub.uv
         d2 = np.einsum("ni,nij,nj->n", nu, np.linalg.inv(S[fi]), nu)
         for j, k in enumerate(sub.ks):
@@ -334,8 +334,9 @@ class _Track:
                 h.append(float(d2[j]))
                 if len(h) > s.consistency_window:
                     del h[0]
-        d2 = np.where(res.used, np.minimum(d2, s.rescue_chi2), s.rescue_chi2)
-        self.score -= 0.5 * (d2.sum() + s.rescue_chi2 * (m - len(fi)))
+        gate = s.ambiguity_gate_chi2
+        d2 = np.where(res.used, np.minimum(d2, gate), gate)
+        self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
         return visible
 
     # ------------------------------------------------------------------ map management
