@@ -6,7 +6,8 @@ hardware). Figures:
   0.5 deg RMS of each other): workbench-static seeds 0-2 with exact clicks, seed 0 with 2.5 px
   clicks and with the text IMU, walk-ahead seed 0;
 * the serial round trip (Get Errors to the virtual Maestro on a pseudo-terminal, median and 99th
-  percentile) and the rig loop's period jitter in the HIL run (wall time between commands);
+  percentile), the Dynamixel driver's bus time per period (virtual Protocol 2.0 bus), and the
+  rig loop's period jitter in the HIL run (wall time between commands);
 * Path A + the software fovea on sit-down-head-still: the closed loop's `stabilise` task
   (the head cancels the rotation from the IMU), recorded, then `stabilise_sequence`'s fovea
   (gyro-aided); background motion (vision2d.stabilise.residual_motion) against the static
@@ -55,6 +56,34 @@ def bench_round_trip(n=500):
     dts = np.array(dts) * 1000
     print(f"serial round trip (Get Errors, virtual Maestro on a pty): median {np.median(dts):.3f} ms, "
           f"99th percentile {np.percentile(dts, 99):.3f} ms over {n}", flush=True)
+
+
+def bench_dynamixel_period(n=300):
+    """The Dynamixel driver's bus cost per control period on a pty (a virtual Protocol 2.0 bus):
+    one goal Sync Write, one encoder Sync Read, one status Sync Read for three servos."""
+    from runtime.drivers.dynamixel import DynamixelBus
+    from runtime.twin.hil import PtyDevice
+    from runtime.twin.virtual_dynamixel import VirtualDynamixelBus
+
+    vb = VirtualDynamixelBus(ids=(1, 2, 3))
+    dev = PtyDevice(vb.feed, "dynamixel")
+    try:
+        bus = DynamixelBus(dev.path, 1_000_000, [1, 2, 3])
+        dts = []
+        for k in range(n):
+            t0 = time.perf_counter()
+            bus.sync_goals([2048 + k % 50] * 3)
+            bus.sync_positions()
+            bus.sync_status()
+            dts.append(time.perf_counter() - t0)
+        bus.close()
+    finally:
+        dev.close()
+        vb.close()
+    dts = np.array(dts) * 1000
+    print(f"Dynamixel bus per period (goals, encoders, status; virtual bus on a pty): median {np.median(dts):.3f} ms, "
+          f"99th percentile {np.percentile(dts, 99):.3f} ms over {n} (a real bus adds the adapter's USB latency "
+          f"and 1 Mbaud wire time)", flush=True)
 
 
 def hil_fixation(scenario: str, seed: int, click_px: float, imu: str, d: Path) -> tuple[float, float, np.ndarray]:
@@ -125,6 +154,7 @@ def bench_path_a_fovea(d: Path, seeds=(0, 1, 2, 3, 4)):
 
 def main():
     bench_round_trip()
+    bench_dynamixel_period()
     with tempfile.TemporaryDirectory(prefix="bench_robot_") as tmp:
         d = Path(tmp)
         wall, diffs = [], []
