@@ -112,7 +112,7 @@ class HeadTrackerConfig:
     template_radius_px: int = 3
     search_px: int = 4
     min_ncc: float = 0.85
-    min_facing: float = 0.3
+    min_facing: float = 0.5
     hist_bins: tuple = (30, 32)
     min_saturation: int = 25
     min_value: int = 25

@@ -110,7 +110,8 @@ def test_unplugging_the_board_mid_run_is_one_line_and_keeps_the_session(tmp_path
     twin, hil, th = _serve(tmp_path, seconds=1.2, wait_s=1.0, linger_s=0.0)
 
     def unplug():
-        while hil.stats.frames < 12:
+        deadline = time.monotonic() + 300
+        while hil.stats.frames < 12 and time.monotonic() < deadline:
             time.sleep(0.01)
         hil.maestro_pty.unplug()
     u = threading.Thread(target=unplug)
@@ -137,12 +138,19 @@ def test_ctrl_c_holds_homes_and_closes(tmp_path):
     import signal
     import time
 
-    twin, hil, th = _serve(tmp_path, seconds=3.0, wait_s=1.0, linger_s=8.0)
+    # The twin waits 5 s for each period's command: a period that compiles a kernel on a loaded
+    # machine (a cold numba cache beside another test worker) is not taken for the stop.
+    twin, hil, th = _serve(tmp_path, seconds=3.0, wait_s=5.0, linger_s=8.0)
     try:
         p = subprocess.Popen([sys.executable, "-m", "wvr", "run", "--rig", str(tmp_path / "hil" / "rig.toml"), "--task",
                               "stabilise", "--out", str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
+        deadline = time.monotonic() + 300
         while hil.stats.frames < 20:
+            if p.poll() is not None or time.monotonic() > deadline:
+                p.kill()
+                out, err = p.communicate()
+                raise AssertionError(f"the rig stopped after {hil.stats.frames} frames: {err[-2000:]}")
             time.sleep(0.01)
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=120)
