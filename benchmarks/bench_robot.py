@@ -11,7 +11,8 @@ hardware). Figures:
 * Path A + the software fovea on sit-down-head-still: the closed loop's `stabilise` task
   (the head cancels the rotation from the IMU), recorded, then `stabilise_sequence`'s fovea
   (gyro-aided); background motion (vision2d.stabilise.residual_motion) against the static
-  camera's raw frames (target: at least 5x less), seeds 0-4, median and worst.
+  camera's raw frames (target: at least 5x less), seeds 0-4, median and worst; with Path A's
+  visual outer loop (`--recentre`, runtime.apps.recentre) at its chosen gain and without it.
 """
 
 import os
@@ -120,39 +121,51 @@ def hil_fixation(scenario: str, seed: int, click_px: float, imu: str, d: Path) -
 #: fovea, 4 s, seeds 0-1: the reference held still, leak 0, left the least background motion of
 #: leaks 0-4 /s at both sizes), reported on sit-down-head-still.
 FOVEAS = ((320, 240), (160, 120))
+#: Path A's outer loop gain, 1/s (``--recentre``), chosen on sit-down-head-still seeds 10-11 (gains 1,
+#: 2, 4, 8 /s: 1 and 2 left the least background motion, 0.56-0.66 px/frame at 320x240) and
+#: office-sit-down seed 1; 0 is Path A from the IMU alone.
+RECENTRE_PER_S = (0.0, 2.0)
 
 
 def bench_path_a_fovea(d: Path, seeds=(0, 1, 2, 3, 4)):
-    ratios = {f: [] for f in FOVEAS}
+    ratios = {(g, f): [] for g in RECENTRE_PER_S for f in FOVEAS}
     for seed in seeds:
         twin = make_twin()
         static = record(twin, "sit-down-head-still", d / f"static{seed}", seconds=SECONDS, seed=seed, progress=False)
         raw = stabilise_sequence(static, d / f"static{seed}-out", progress=False).raw_motion_px
-        rec = {}
-
-        def on_period(obs, cmd):
-            if "r" not in rec:
-                rec["r"] = SessionRecorder(d / f"pathA{seed}", twin.camera, twin.head)
-            rec["r"](obs, cmd)
-        run_on_twin(twin, "sit-down-head-still", Task("stabilise"), d / f"pathA{seed}-run", seconds=SECONDS, seed=seed,
-                    progress=False, on_period=on_period)
-        rec["r"].finish(True)
         twin.close()
-        line = []
-        for f in FOVEAS:
-            st = stabilise_sequence(d / f"pathA{seed}", d / f"pathA{seed}-{f[0]}", fovea=f, use_imu=True, progress=False)
-            ratios[f].append(raw / st.fovea_motion_px)
-            line.append(f"Path A + {f[0]}x{f[1]} fovea {st.fovea_motion_px:.2f} ({st.clamped} frames clamped)")
-        print(f"sit-down-head-still seed {seed}, {SECONDS:g} s, background motion px/frame: static camera {raw:.2f}; "
-              f"Path A head alone {st.raw_motion_px:.2f}; " + "; ".join(line), flush=True)
-    for f in FOVEAS:
-        r = np.array(ratios[f])
+        for g in RECENTRE_PER_S:
+            twin = make_twin()
+            rec = {}
+            name = f"pathA{seed}-{g:g}"
+
+            def on_period(obs, cmd):
+                if "r" not in rec:
+                    rec["r"] = SessionRecorder(d / name, twin.camera, twin.head)
+                rec["r"](obs, cmd)
+            run_on_twin(twin, "sit-down-head-still", Task("stabilise", recentre_per_s=g), d / f"{name}-run",
+                        seconds=SECONDS, seed=seed, progress=False, on_period=on_period)
+            rec["r"].finish(True)
+            twin.close()
+            line = []
+            for f in FOVEAS:
+                st = stabilise_sequence(d / name, d / f"{name}-{f[0]}", fovea=f, use_imu=True, progress=False)
+                ratios[(g, f)].append(raw / st.fovea_motion_px)
+                line.append(f"+ {f[0]}x{f[1]} fovea {st.fovea_motion_px:.2f} ({st.clamped} frames clamped)")
+            print(f"sit-down-head-still seed {seed}, {SECONDS:g} s, background motion px/frame: static camera {raw:.2f}; "
+                  f"Path A (outer loop {g:g}/s) head alone {st.raw_motion_px:.2f}; " + "; ".join(line), flush=True)
+    for (g, f), r in ratios.items():
+        r = np.array(r)
         ok = np.isfinite(r)        # NaN: too few corners in the fovea to measure (it sat on a plain wall)
-        print(f"  static / (Path A + {f[0]}x{f[1]} fovea): median {np.median(r[ok]):.1f}x, worst {r[ok].min():.1f}x "
-              f"over {ok.sum()} seeds ({(~ok).sum()} not measurable) (target >= 5)", flush=True)
+        print(f"  static / (Path A, outer loop {g:g}/s, + {f[0]}x{f[1]} fovea): median {np.median(r[ok]):.1f}x, "
+              f"worst {r[ok].min():.1f}x over {ok.sum()} seeds ({(~ok).sum()} not measurable) (target >= 5)", flush=True)
 
 
 def main():
+    if sys.argv[1:] == ["path-a"]:
+        with tempfile.TemporaryDirectory(prefix="bench_robot_") as tmp:
+            bench_path_a_fovea(Path(tmp))
+        return
     bench_round_trip()
     bench_dynamixel_period()
     with tempfile.TemporaryDirectory(prefix="bench_robot_") as tmp:

@@ -288,6 +288,14 @@ def _check_limit(limit_deg_s: float, head_path) -> None:
                          f"the servos' {top:.0f} deg/s (the paper's is 30)")
 
 
+def _recentre(args) -> float:
+    """--recentre, which only the stabilise task takes (one line otherwise)."""
+    g = float(getattr(args, "recentre", 0.0) or 0.0)
+    if g > 0 and args.task != "stabilise":
+        raise ValueError(f"--recentre is Path A's outer loop: give it with --task stabilise, not {args.task}")
+    return g
+
+
 def cmd_sim_run(args) -> int:
     from runtime.apps.closed_loop import Task, load_targets
     from runtime.gaze import ControllerSettings
@@ -306,7 +314,7 @@ def cmd_sim_run(args) -> int:
         targets = [scenario.bench.target_corners().mean(axis=0)]
     region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
-                method=getattr(args, "method", "hyperplane"))
+                method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     with output_folder(args.out) as out:    # checked before the twin starts, INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)
@@ -530,7 +538,8 @@ def cmd_run(args) -> int:
         if np.shape(args.init) != (4,):
             raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
         region = tuple(float(v) for v in args.init)
-    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method)
+    task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method,
+                recentre_per_s=_recentre(args))
     limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
     if task.uses_slam and start is None:
@@ -803,6 +812,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--init", type=_box, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    run.add_argument("--recentre", type=_nonnegative, default=0.0, metavar="PER_S",
+                     help="stabilise: Path A's visual outer loop, 1/s: the held attitude turns towards where the software fovea wants to look (default 0: the IMU alone)")
     run.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
@@ -841,6 +852,8 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--limit", type=_positive, default=30.0, help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")
     rr.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
+    rr.add_argument("--recentre", type=_nonnegative, default=0.0, metavar="PER_S",
+                    help="stabilise: Path A's visual outer loop, 1/s: the held attitude turns towards where the software fovea wants to look (default 0: the IMU alone)")
     rr.add_argument("--start-target", help="target.toml: known points and their pixels in the first image "
                     "(default: rig.toml [start] target)")
     rr.add_argument("--seconds", type=_seconds, help="stop after this long (default: until Ctrl-C or the camera ends)")

@@ -40,6 +40,8 @@ from kinematics import JOINT_NAMES
 from kinematics.tomlfile import read_toml
 
 from ..gaze import ControllerSettings, GazeController, GazeRefused
+from ..gaze.modes import Stabilise
+from .recentre import Recentring
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
@@ -91,13 +93,16 @@ TRACK_REGION_SCALE = 1.8
 class Task:
     """kind : one of :data:`TASKS`. targets : (n, 3) world points, m (fixate, saccade).
     dwell_s : time on each saccade target before the next. region : track: (x, y, w, h) pixels
-    in the first frame (default: the start target's rectangle). method : track: the 2D tracker."""
+    in the first frame (default: the start target's rectangle). method : track: the 2D tracker.
+    recentre_per_s : stabilise: the gain of Path A's visual outer loop (runtime.apps.recentre),
+    1/s; 0 (default) holds the attitude from the IMU alone."""
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     dwell_s: float = 2.0
     region: tuple | None = None
     method: str = "hyperplane"
+    recentre_per_s: float = 0.0
 
     def __post_init__(self):
         if self.kind not in TASKS:
@@ -113,6 +118,10 @@ class Task:
             raise ValueError(f"track method {self.method!r}: use one of {', '.join(TRACK_METHODS)}")
         if not self.dwell_s > 0:
             raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
+        if not (math.isfinite(self.recentre_per_s) and self.recentre_per_s >= 0):
+            raise ValueError(f"recentre_per_s = {self.recentre_per_s} must be >= 0 (1/s; 0 turns the outer loop off)")
+        if self.recentre_per_s > 0 and self.kind != "stabilise":
+            raise ValueError("recentring is Path A's outer loop: give it with task stabilise only")
         object.__setattr__(self, "targets", t)
 
     @property
@@ -243,6 +252,7 @@ class ClosedLoop:
         self.slam: MonoSLAM | None = None
         self.ctl: GazeController | None = None
         self.tracker = None
+        self.recentring: Recentring | None = None
         self.region_uv: np.ndarray | None = None
         self._i = 0
         self._current = 0
@@ -354,6 +364,8 @@ class ClosedLoop:
                 ctl.attitude.update(imu)
                 imu = np.zeros((0, 7))
                 ctl.stabilise()
+                if task.recentre_per_s > 0:
+                    self.recentring = Recentring(self.info.camera, task.recentre_per_s)
             elif task.kind == "body":
                 ctl.body()
             elif task.kind in ("fixate", "saccade"):
@@ -361,6 +373,10 @@ class ClosedLoop:
         if task.kind == "saccade" and not self.external and i > 1 and obs.t >= (self._current + 1) * task.dwell_s:
             self._current += 1
             self._set_target(self._current % len(task.targets), obs.t)
+        if self.recentring is not None and self._kind == "stabilise" and obs.fresh_image \
+                and isinstance(ctl.active, Stabilise):
+            R_turn = self.recentring.correction(obs.t, obs.image, obs.imu.rows())
+            ctl.stabilise(ctl.active.R_world_cam @ R_turn)
         poly, track_lost = np.full((4, 2), np.nan), False
         if self.tracker is not None:
             if i == 0:

@@ -49,7 +49,6 @@ from kinematics.outdir import output_folder
 from kinematics.transforms import nearest_rotation
 
 from . import images
-from ..eval import rotation_errors_deg
 from ..sequence import ImuLog, open_sequence, write_trajectory
 
 # Why a frame was flagged (StepResult.reason / RotationResult.reason).
@@ -722,6 +721,8 @@ def _summarise(run: _Pass, seq, fsize: tuple[int, int], use_imu: bool) -> Stabil
         extra["imu_rotation_mean_deg"] = float(np.mean(run.imu_rotation))
         extra["vision_remainder_mean_deg"] = float(np.mean(run.vision_remainder))
     if seq.groundtruth is not None and n > 1:
+        from ..eval import rotation_errors_deg   # scoring only: the per-frame stabiliser never needs it
+
         err = rotation_errors_deg(np.array(run.t), np.array(run.R_prev_cur), seq.groundtruth)
         if np.isfinite(err).any():
             extra["rotation_rms_error_deg"] = float(np.sqrt(np.nanmean(err ** 2)))

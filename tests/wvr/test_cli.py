@@ -89,3 +89,10 @@ def test_a_failed_demo_stage_fails_the_demo_and_is_named_in_the_report(tmp_path,
     assert "later stages still run" in report and not (tmp_path / "d" / "INCOMPLETE").exists()
     r = demo.run_demo(tmp_path / "e", stages=stages[:1])
     assert r.failed == [] and "FAILED" not in r.report.read_text()
+
+
+def test_recentre_is_refused_outside_path_a_before_any_work(tmp_path):
+    out = tmp_path / "run"
+    r = run("sim", "run", "--scenario", "workbench-static", "--task", "fixate", "--recentre", "2", "--out", str(out))
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--task stabilise" in r.stderr
+    assert not out.exists()
