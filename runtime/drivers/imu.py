@@ -14,9 +14,13 @@ lost between indices.
 The RVC stream has no angular rates. They are derived by differencing the orientation:
 ``w_n = log(R_{n-1}^T R_n) / dt`` over each 10 ms report interval, so that integrating the rates
 gives back the sensor's own fused orientation exactly (the quantisation of 0.01 deg per report
-becomes about 1 deg/s of rate noise per sample, which cancels in any integral). Samples are
-stamped by their index (``t0 + n / 100``, dropped reports counted in n), anchored at the rig's
-clock when the stream starts.
+becomes about 0.5 deg/s of rate noise per sample, which cancels in any integral). A sample holds
+for the interval it was differenced over: it is stamped at the interval's start (report n's
+sample at ``t0 + (n - 1) / 100``, dropped reports counted in n), since its consumers hold each
+sample until the next (SLAM's inertial prediction); its acceleration is the mean of the
+interval's two reports. Stamped at the interval's end, every rate came one report late: 0.3 deg
+of rotation per frame at 30 deg/s, enough to throw SLAM's predictions off during a saccade. The
+stream is anchored at the rig's clock when it starts.
 
 **Text lines**, for other boards (and the hardware-in-the-loop IMU): ``t wx wy wz ax ay az`` per
 line (s, rad/s, m/s^2, the IMU's frame; imu.txt's layout), ``#`` lines ignored; the board's own
@@ -41,11 +45,10 @@ from ..robot import ImuNoise, ImuSamples
 from . import DriverError
 
 #: The RVC stream's noise as an inertial input (runtime.robot.ImuNoise): rates differenced from
-#: 0.01-deg orientations at 100 Hz carry about 1 deg/s of noise a sample (0.002 rad/s/sqrt(Hz))
-#: plus the sensor fusion's lag, taken as 0.005; the specific force a raw MEMS part's, doubled as
-#: SlamConfig's default is. On a hardware-in-the-loop session replayed camera+IMU, the default
-#: raw-IMU gyro noise (0.0005) gave 13.6 cm ATE and 0.005 gave 0.44 cm (camera only: 0.2 cm).
-RVC_GYRO_NOISE = 0.005          # rad/s/sqrt(Hz)
+#: 0.01-deg orientations at 100 Hz carry about 0.5 deg/s of noise a sample (0.0007 rad/s/sqrt(Hz)),
+#: taken with a margin for the sensor fusion's own errors as 0.002; the specific force a raw
+#: MEMS part's, doubled as SlamConfig's default is.
+RVC_GYRO_NOISE = 0.002          # rad/s/sqrt(Hz)
 RVC_ACCEL_NOISE = 0.004         # m/s^2/sqrt(Hz)
 
 RVC_FRAME_BYTES = 19
@@ -147,16 +150,20 @@ class RvcRates:
         self._prev: RvcReport | None = None
 
     def push(self, r: RvcReport) -> tuple[float, np.ndarray, np.ndarray] | None:
-        """The sample at report n (time n / rate after report 0), or None for report 0."""
+        """The sample describing the interval that ends at report n: (its start, n - 1 periods after
+        report 0 (more when reports were dropped: then their whole gap), its mean rate, its mean
+        specific force), or None for report 0."""
         if self._prev is None:
             self.t0 = 0.0
             self._prev = r
             return None
         steps = (r.index - self._prev.index) % 256 or 256
+        start = self.t0 + self._n * self.period          # the interval this sample describes starts here
         self._n += steps
         w = Rotation.from_matrix(self._prev.R_ref_imu.T @ r.R_ref_imu).as_rotvec() / (steps * self.period)
+        a = 0.5 * (np.asarray(self._prev.accel, float) + np.asarray(r.accel, float))
         self._prev = r
-        return self.t0 + self._n * self.period, w, r.accel
+        return start, w, a
 
 
 @dataclass
@@ -331,8 +338,11 @@ class ImuReader:
         for the stream to reach ``t`` (within one sample period)."""
         deadline = time.monotonic() + wait_s
         period = self.period
+        # An RVC sample is stamped at the start of the interval it describes: the one from the
+        # last report due by t is stamped up to two periods before t.
+        due = t - (2 * period if self.protocol == "bno085-rvc" else period)
         with self._cond:
-            while self._error is None and (self.offset is None or self.latest_t + self.offset < t - period - 1e-9):
+            while self._error is None and (self.offset is None or self.latest_t + self.offset < due - 1e-9):
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break

@@ -466,8 +466,10 @@ class HardwareRig:
         q = self.chain.apply(command, self.t, 1.0 / self.cfg.fps)
         self.sent_qus.append(self.board.send(q))
         self.board.check_errors()
-        q_board = self.board.positions()
         frame = self.camera.read(self.cfg.camera_timeout_s)
+        # The board's outputs when the frame has come (read before it, they were the period's
+        # start: the controller then saw its joints a period late, and a walk's fixation rang).
+        q_board = self.board.positions()
         imu = self._imu_until(frame.t)
         self.t = frame.t
         return Observation(frame.t, frame.image, imu, q_board, self.q_source)

@@ -116,6 +116,8 @@ class GazeController:
         self.v_mount = np.zeros(3)
         self.w_mount = np.zeros(3)    # world frame, rad/s
         self.q_enc = np.asarray(q0, float).copy()
+        self.qd_enc = np.zeros(3)           # the encoders' rate over the last period
+        self.omega_period: np.ndarray | None = None   # the gyro's mean over the last period, camera frame
         self.pose_enc = forward_kinematics(head, self.q_enc)   # the head's FK at the encoder angles
         self.t = 0.0
         self._last_prompt_t = -np.inf
@@ -210,15 +212,15 @@ class GazeController:
         else:
             return
         R_wm = T[:3, :3]
-        # The head's own contribution to the camera's motion, at the rates of the last period.
-        w_joints_mount = pose.axes_mount.T @ self.qd_prev
+        # The head's own contribution to the camera's motion over the last period.
+        w_joints_mount = pose.axes_mount.T @ self.qd_enc
         R_wc = T[:3, :3] @ pose.R_mount_cam
+        omega = self.omega_period if self.omega_period is not None else self.attitude.omega_cam
         # Without any gyro sample the wearer's rotation is unknown: assume still.
-        self.w_mount = (R_wc @ self.attitude.omega_cam - R_wm @ w_joints_mount) if self.attitude.t is not None \
-            else np.zeros(3)
+        self.w_mount = (R_wc @ omega - R_wm @ w_joints_mount) if self.attitude.t is not None else np.zeros(3)
         if v_world is not None:
             lever = R_wm @ pose.p_mount_cam                        # mount origin -> optical centre
-            v_joints = R_wm @ (np.cross(pose.axes_mount, pose.p_mount_cam - pose.origins_mount).T @ self.qd_prev)
+            v_joints = R_wm @ (np.cross(pose.axes_mount, pose.p_mount_cam - pose.origins_mount).T @ self.qd_enc)
             self.v_mount = np.asarray(v_world, float) - np.cross(self.w_mount, lever) - v_joints
         elif self.T_world_mount is not None and T_world_cam is not None:
             self.v_mount = (T[:3, 3] - self.T_world_mount[:3, 3]) / self.dt
@@ -262,6 +264,14 @@ class GazeController:
         enc = np.asarray(encoders, float)
         if enc.shape != (3,) or not np.isfinite(enc).all():
             raise ValueError(f"encoder angles must be 3 finite radians, got {np.asarray(encoders).tolist()}")
+        # The joints' and the camera's motion over the same period (the encoders' change, the
+        # gyro's mean): the wearer's rotation is their difference. The commanded rate and the
+        # latest gyro sample are not simultaneous when the servos reach their targets early in
+        # the period (a speed-limited board), and their difference then rang through the loop.
+        self.qd_enc = (enc - self.q_enc) / self.dt
+        rows = np.asarray(imu, float).reshape(-1, 7)
+        rows = rows[np.isfinite(rows).all(axis=1)]
+        self.omega_period = rows[:, 1:4].mean(axis=0) if len(rows) else None
         self.q_enc = enc
         self.pose_enc = forward_kinematics(self.head, enc)    # once per period, used by every mode
         self.attitude.update(imu)

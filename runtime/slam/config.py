@@ -30,6 +30,9 @@ class SlamConfig:
     sigma_pixel : a feature measurement's standard deviation per axis, px.
     imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
         (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
+    imu_hold_rate_sigma, imu_hold_accel_sigma : how far the rate (rad/s) and the specific force
+        (m/s^2) may have moved from the last sample while it is held past the samples' cover (a
+        frame that arrives before the samples describing its end: inertial.predict_imu).
     gyro_bias_walk, accel_bias_walk : the bias states' random walks, rad/s/sqrt(s) and
         m/s^2/sqrt(s).
     gyro_bias_sigma0, accel_bias_sigma0 : the biases' prior standard deviations before any
@@ -44,6 +47,8 @@ class SlamConfig:
     sigma_pixel: float = 1.0
     imu_accel_noise: float = 0.004
     imu_gyro_noise: float = 0.0005
+    imu_hold_rate_sigma: float = 0.5
+    imu_hold_accel_sigma: float = 2.0
     gyro_bias_walk: float = 2e-4
     accel_bias_walk: float = 2e-3
     gyro_bias_sigma0: float = 0.01
@@ -134,7 +139,7 @@ class MapSettings:
     # -- IMU --
     use_imu: bool = True
     imu_biases: bool = True              # bias states in the filter (the camera block of 19)
-    still_gyro_rad_s: float = 0.02       # an IMU stretch is still below this rate spread
+    still_gyro_rad_s: float = 0.02       # an IMU stretch is still below this RMS rate spread
     still_min_s: float = 0.3
     imu_max_gap_s: float = 0.05          # a longer gap between samples falls back to vision only
     imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes

@@ -96,7 +96,8 @@ def imu_step_and_jacobians(x_v, omega, f, d: float) -> tuple[np.ndarray, np.ndar
 @compiled_kernel(imu_step_kernel)
 def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
     """The camera block and its covariance through every interval, and the product of the
-    intervals' Jacobians (for the camera-map cross-covariance)."""
+    intervals' Jacobians (for the camera-map cross-covariance). ``sa``, ``sg`` (k,): each
+    interval's noise densities."""
     cd = x_v.shape[0]
     F_total = np.eye(cd)
     for j in range(len(ds)):
@@ -104,38 +105,57 @@ def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
         x_v, F, G = imu_step_kernel(x_v, omegas[j], fs[j], d)
         Pn = np.zeros((6, 6))               # white noise of density s over d: variance s^2 / d
         for i in range(3):
-            Pn[i, i] = sa * sa / d
-            Pn[3 + i, 3 + i] = sg * sg / d
+            Pn[i, i] = sa[j] * sa[j] / d
+            Pn[3 + i, 3 + i] = sg[j] * sg[j] / d
         P_vv = F @ P_vv @ F.T + G @ Pn @ G.T
         F_total = F @ F_total
     return x_v, P_vv, F_total
 
 
-def imu_intervals(imu: np.ndarray, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def imu_intervals(imu: np.ndarray, t0: float, t1: float, covered_until: float = np.inf
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split ``(t0, t1]`` at the IMU sample times: durations (k,), rates (k, 3), specific forces
     (k, 3), each interval using the latest sample at or before its start (zero-order hold).
     ``imu`` : (m, 7) rows ``[t, wx, wy, wz, ax, ay, az]`` sorted by time, with a sample at or
-    before t0."""
+    before t0. With ``covered_until`` (s) given, the split is also made there and a fourth array
+    (k,) bool says which intervals lie beyond it (extrapolated: no sample has described them)."""
     imu = np.asarray(imu, float).reshape(-1, 7)
     times = imu[:, 0]
     i0 = int(np.searchsorted(times, t0, side="right")) - 1
     if i0 < 0:
         raise ValueError(f"no IMU sample at or before t = {t0:.6f} s")
     i1 = int(np.searchsorted(times, t1, side="left"))          # samples strictly before t1
-    edges = np.concatenate([[t0], times[i0 + 1:i1], [t1]])
-    d = np.diff(edges)
+    starts = np.concatenate([[t0], times[i0 + 1:i1]])
     rows = imu[i0:max(i1, i0 + 1)]
+    if np.isfinite(covered_until):
+        j = int(np.searchsorted(starts, covered_until, side="right"))
+        if t0 < covered_until < t1 and starts[j - 1] != covered_until:
+            starts = np.insert(starts, j, covered_until)
+            rows = np.insert(rows, j, rows[j - 1], axis=0)
+    d = np.diff(np.concatenate([starts, [t1]]))
     keep = d > 0
-    return d[keep], rows[keep, 1:4], rows[keep, 4:7]
+    if not np.isfinite(covered_until):
+        return d[keep], rows[keep, 1:4], rows[keep, 4:7]
+    return d[keep], rows[keep, 1:4], rows[keep, 4:7], starts[keep] >= covered_until
 
 
-def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig, noise_gain: float = 1.0) -> None:
+def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig, noise_gain: float = 1.0,
+                covered_until: float = np.inf) -> None:
     """The EKF prediction from ``t0`` to ``t1`` through the IMU samples, in place: ``P_vv``
     interval by interval with each interval's noise, the camera-map cross-covariance by the
-    product of the intervals' Jacobians; then ``q`` is renormalised with its Jacobian."""
-    ds, omegas, fs = imu_intervals(imu, t0, t1)
+    product of the intervals' Jacobians; then ``q`` is renormalised with its Jacobian.
+
+    ``covered_until`` : the time up to which the samples describe the motion (the last one's
+    time plus the stream's period). Beyond it the last sample is held without knowing the
+    motion (the frame came before the samples covering its end): that stretch takes the
+    extra noise of a rate and a specific force that may have changed by ``imu_hold_rate_sigma``
+    and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d)."""
+    res = imu_intervals(imu, t0, t1, covered_until)
+    ds, omegas, fs = res[:3]
+    held = res[3] if len(res) == 4 else np.zeros(len(ds), bool)
     cd = state.cam_dim
-    sa, sg = noise_gain * cfg.imu_accel_noise, noise_gain * cfg.imu_gyro_noise
+    sa = noise_gain * np.sqrt(cfg.imu_accel_noise**2 + held * cfg.imu_hold_accel_sigma**2 * ds)
+    sg = noise_gain * np.sqrt(cfg.imu_gyro_noise**2 + held * cfg.imu_hold_rate_sigma**2 * ds)
     x_v, P_vv, F_total = _propagate_kernel(state.x[:cd].copy(), state.P[:cd, :cd].copy(),
                                            ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg)
     bias_walk(P_vv, t1 - t0, cfg)
@@ -162,6 +182,15 @@ class ImuStream:
         self.rows = np.zeros((0, 7))
         self.counts = ImuCounts()
         self.t_last = -np.inf
+        self.period: float | None = None       # the median spacing of the samples, s
+
+    @property
+    def covered_until(self) -> float:
+        """The time up to which the samples describe the motion: the last one's time plus the
+        stream's period (each sample holds until the next)."""
+        if not len(self.rows):
+            return -np.inf
+        return float(self.rows[-1, 0]) + (self.period or 0.0)
 
     def add(self, rows) -> list[str]:
         """Queue rows (k, 7) ``[t, wx, wy, wz, ax, ay, az]``; returns a line per kind of
@@ -198,6 +227,8 @@ class ImuStream:
         if len(good):
             self.t_last = float(good[-1, 0])
             self.rows = np.vstack([self.rows, good]) if len(self.rows) else good
+            if self.period is None and len(self.rows) >= 3:
+                self.period = float(np.median(np.diff(self.rows[:, 0])))
         return problems
 
     def covering(self, t0: float, t1: float) -> np.ndarray | None:
@@ -222,3 +253,54 @@ class ImuStream:
         if len(self.rows):
             k = max(int(np.searchsorted(self.rows[:, 0], t, side="right")) - 1, 0)
             self.rows = self.rows[k:]
+
+
+@dataclass(frozen=True)
+class StillBiases:
+    """Bias estimates from a still stretch of IMU samples (camera frame): the gyro's mean rate
+    and the accelerometer's mean less gravity as the camera's attitude ``q`` sees it.
+    var_g, var_f : the means' variances (per axis). J_q : (3, 4) d b_a / d q, how the
+    accelerometer's bias moves with the attitude it was computed from. seconds : the stretch."""
+
+    b_g: np.ndarray
+    b_a: np.ndarray
+    var_g: float
+    var_f: float
+    J_q: np.ndarray
+    seconds: float
+
+
+def still_biases(rows: np.ndarray, t_end: float, q: np.ndarray, settings: MapSettings,
+                 cfg: SlamConfig) -> StillBiases | None:
+    """The biases from the still stretch that ends at ``t_end`` (the first frame), when the
+    samples before it hold one at least ``still_min_s`` long whose rates' RMS spread about their
+    mean is within ``still_gyro_rad_s``; else None. Still, the gyro reads its bias and the
+    accelerometer ``R(q)^T (0, 0, 9.81) + b_a`` (``q``: the camera's attitude, world frame)."""
+    rows = np.asarray(rows, float).reshape(-1, 7)
+    rows = rows[rows[:, 0] <= t_end + 1e-9]
+    if len(rows) < 3 or t_end - rows[0, 0] < settings.still_min_s:
+        return None
+    # The longest stretch back from t_end whose rates' RMS spread about their mean stays below
+    # the threshold (suffix sums: every candidate start at once).
+    w_rev = rows[::-1, 1:4]
+    n = np.arange(1, len(rows) + 1)[:, None]
+    mean = np.cumsum(w_rev, axis=0) / n
+    spread = np.sqrt(np.maximum(np.cumsum((w_rev**2).sum(axis=1)) / n[:, 0] - (mean**2).sum(axis=1), 0.0))
+    still = spread <= settings.still_gyro_rad_s
+    m = len(rows) if still.all() else int(np.argmin(still))      # the first suffix that is not still
+    seg = rows[len(rows) - m:]
+    T = float(t_end - seg[0, 0]) if len(seg) else 0.0
+    if len(seg) < 3 or T < settings.still_min_s:
+        return None
+    w, f = seg[:, 1:4], seg[:, 4:7]
+    b_g = w.mean(axis=0)
+    q = np.asarray(q, float)
+    up = -GRAVITY
+    b_a = f.mean(axis=0) - rotation_kernel(q[0], q[1], q[2], q[3]).T @ up
+    dR = rotation_derivatives_kernel(q[0], q[1], q[2], q[3])
+    J_q = -np.column_stack([dR[k].T @ up for k in range(4)])
+    # The means' standard errors: from the noise densities, or from the samples' own spread per
+    # axis when that is larger (some motion left in the stretch).
+    var_g = max(cfg.imu_gyro_noise**2 / T, float(np.mean((w - b_g) ** 2)) / len(w))
+    var_f = max(cfg.imu_accel_noise**2 / T, float(np.mean((f - f.mean(axis=0)) ** 2)) / len(f))
+    return StillBiases(b_g, b_a, var_g, var_f, J_q, T)

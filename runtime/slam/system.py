@@ -44,7 +44,7 @@ from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
 from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, convert_to_point,
                      innovation_covariances)
-from .inertial import ImuStream, predict_imu
+from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
 from .motion import f_and_dfdx, predict as predict_cv
 from .quaternion import quat_to_rotation
@@ -169,7 +169,8 @@ class _Track:
         lost = self.lost
         if imu_rows is not None:
             try:
-                predict_imu(self.state, imu_rows, t_prev, t, cfg, noise_gain=s.lost_noise_gain if lost else 1.0)
+                predict_imu(self.state, imu_rows, t_prev, t, cfg, noise_gain=s.lost_noise_gain if lost else 1.0,
+                            covered_until=self.slam.imu.covered_until)
                 st.imu = True
             except (SlamNumericalError, ValueError):
                 imu_rows = None
@@ -557,6 +558,7 @@ class MonoSLAM:
         self.messages: list[str] = []      # what the console should say (IMU problems, ...)
         self.nis_limit = float(chi2.ppf(settings.consistency_confidence, 2 * settings.consistency_window))
         self.refined_target: RefinedTarget | None = None
+        self.still: StillBiases | None = None    # the biases a still stretch before the start gave
 
     # -------------------------------------------------------------- views
     @property
@@ -653,11 +655,27 @@ class MonoSLAM:
             search=tr.last)
 
     # -------------------------------------------------------------- start-up
-    def _camera_state(self, hyp: PoseHypothesis) -> State:
+    def _camera_state(self, hyp: PoseHypothesis, t: float) -> State:
         x_v, P = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, self.cam_dim)
         if self.cam_dim == CAMERA_DIM_BIASED:
             for sl, s0 in ((BG_SLICE, self.cfg.gyro_bias_sigma0), (BA_SLICE, self.cfg.accel_bias_sigma0)):
                 P[sl, sl] = np.eye(3) * s0**2
+            # A still stretch before the first frame gives the biases: the gyro's directly, the
+            # accelerometer's through the start's attitude, correlated with it (as a new
+            # feature is with the camera), so that refining the attitude refines it.
+            still = still_biases(self.imu.rows, t, x_v[3:7], self.settings, self.cfg)
+            if still is not None:
+                x_v[BG_SLICE], P[BG_SLICE, BG_SLICE] = still.b_g, np.eye(3) * still.var_g
+                J = np.zeros((3, self.cam_dim))
+                J[:, 3:7] = still.J_q
+                P[BA_SLICE, :] = 0.0
+                P[:, BA_SLICE] = 0.0
+                P_ax = J @ P
+                x_v[BA_SLICE] = still.b_a
+                P[BA_SLICE, :] = P_ax
+                P[:, BA_SLICE] = P_ax.T
+                P[BA_SLICE, BA_SLICE] = J @ P_ax.T + np.eye(3) * still.var_f
+                self.still = still
         return State.from_camera(x_v, P)
 
     def restart_camera(self, state: State, hyp: PoseHypothesis) -> None:
@@ -689,7 +707,7 @@ class MonoSLAM:
         _, _, Vt = np.linalg.svd(ref.xyz - c)
         self._tracks = []
         for hyp in hyps:
-            state = self._camera_state(hyp)
+            state = self._camera_state(hyp, t)
             normal = Vt[2] if Vt[2] @ (hyp.r - c) > 0 else -Vt[2]
             feats = []
             for i, (X, p) in enumerate(zip(ref.xyz, ref.uv)):
@@ -702,6 +720,9 @@ class MonoSLAM:
                                         patch=first_view_patch(g, p, patch_half(self.template_px)),
                                         uv0=np.asarray(p, float), R0=hyp.R_world_cam.copy(), normal=normal, last_seen=0))
             self._tracks.append(_Track(self, state, feats))
+        if self.still is not None:
+            self.messages.append(f"slam: IMU biases from the {self.still.seconds:.1f} s still before the first frame "
+                                 f"(gyro {np.round(1e3 * self.still.b_g, 2).tolist()} mrad/s)")
         self._next_id = len(ref.xyz)
         self.frame = 0
         self.t_prev = t
@@ -778,7 +799,7 @@ class MonoSLAM:
             done = False
             if rows is not None:
                 try:
-                    predict_imu(tr.state, rows, self.t_prev, t, self.cfg)
+                    predict_imu(tr.state, rows, self.t_prev, t, self.cfg, covered_until=self.imu.covered_until)
                     done = True
                 except (SlamNumericalError, ValueError):
                     pass

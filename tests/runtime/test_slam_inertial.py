@@ -6,6 +6,8 @@ and ImuStream's checks of the rows (NaN, spikes, out of order, gaps)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -69,6 +71,39 @@ def test_intervals_cover_the_frame_with_the_sample_holding_over_each():
     assert omegas[:, 0].tolist() == [2]
     with pytest.raises(ValueError, match="no IMU sample"):
         imu_intervals(imu[1:], 0.003, 0.012)
+
+
+def test_intervals_split_where_the_samples_stop_describing_the_motion():
+    imu = np.array([[0.0, *[1, 0, 0], *[0, 0, 1]], [0.010, *[2, 0, 0], *[0, 0, 2]]])
+    # The last sample (0.010) describes up to 0.020; the frame at 0.033 holds it past that.
+    d, omegas, fs, held = imu_intervals(imu, 0.003, 0.033, covered_until=0.020)
+    np.testing.assert_allclose(d, [0.007, 0.010, 0.013], atol=1e-12)
+    assert omegas[:, 0].tolist() == [1, 2, 2] and held.tolist() == [False, False, True]
+    d, _, _, held = imu_intervals(imu, 0.003, 0.018, covered_until=0.020)     # covered to the end
+    np.testing.assert_allclose(d, [0.007, 0.008], atol=1e-12)
+    assert not held.any()
+
+
+def test_a_held_stretch_takes_the_noise_of_an_unknown_rate_change():
+    """Beyond the samples' cover the last sample is held: the same mean, but the orientation's
+    and the rate's variances grow by a rate change of imu_hold_rate_sigma over that stretch (a
+    density sigma sqrt(d): the rate's variance grows by sigma^2); covered, nothing changes."""
+    x_v = np.r_[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(3)]
+    imu = np.array([[0.0, 0.3, -0.2, 0.1, 0.0, 9.81, 0.0], [0.010, 0.3, -0.2, 0.1, 0.0, 9.81, 0.0]])
+    cfg = replace(CFG, imu_hold_rate_sigma=0.5, imu_hold_accel_sigma=0.0)
+    out = {}
+    for name, cover in (("covered", 0.040), ("held", 0.020), ("plain", np.inf)):
+        s = State.from_camera(x_v.copy(), np.eye(13) * 1e-8)
+        predict_imu(s, imu, 0.0, 0.033, cfg, covered_until=cover)
+        out[name] = s
+    st.assert_close(out["covered"].x, out["held"].x, 1e-3)       # the same hold (split once more: discretisation)
+    st.assert_close(out["covered"].P, out["plain"].P, 1e-15)
+    dP_w = np.diag(out["held"].P)[W_SLICE] - np.diag(out["covered"].P)[W_SLICE]
+    np.testing.assert_allclose(dP_w, 0.5**2, rtol=1e-4)     # the rate: sigma^2 (and the gyro noise over a shorter last interval)
+    dP_q = np.trace(out["held"].P[Q_SLICE, Q_SLICE] - out["covered"].P[Q_SLICE, Q_SLICE])
+    # The orientation: a rate off by sigma held over d, an angle of variance (sigma d)^2 per axis
+    # (quaternion units: a quarter of the angle's).
+    assert dP_q == pytest.approx(3 * 0.25 * (0.5 * 0.013) ** 2, rel=0.05)
 
 
 def analytic_imu(a_world, w_cam, R0, t, b_g=np.zeros(3), b_a=np.zeros(3)):
@@ -267,3 +302,19 @@ def test_imu_stream_covering_and_gaps():
     assert s.rows[0, 0] <= 0.7 < s.rows[1, 0]
     assert s.covering(0.7, 0.75) is not None
     assert ImuStream(settings).covering(0.0, 0.1) is None      # nothing yet: not a gap
+
+
+def test_still_biases_accelerometer_jacobian_against_finite_differences():
+    from runtime.slam.inertial import still_biases
+
+    rng = np.random.default_rng(3)
+    q = st.random_quat(rng)
+    t = np.arange(0.0, 1.0, 0.005)
+    f = quat_to_rotation(q).T @ -GRAVITY + np.array([0.05, -0.02, 0.03])
+    imu = np.column_stack([t, np.tile([0.004, 0.0, -0.002], (len(t), 1)), np.tile(f, (len(t), 1))])
+    s = MapSettings()
+    res = still_biases(imu, t[-1], q, s, CFG)
+    assert res is not None and res.seconds == pytest.approx(t[-1] - t[0])
+    np.testing.assert_allclose(res.b_a, [0.05, -0.02, 0.03], atol=1e-12)
+    J_fd = st.fd_jacobian(lambda qq: still_biases(imu, t[-1], qq, s, CFG).b_a, q)
+    st.assert_jacobian(res.J_q, J_fd)

@@ -192,3 +192,57 @@ def test_camera_prior_maps_the_pose_covariance_into_the_state():
     C = np.cov(samples.T)
     np.testing.assert_allclose(C, P[:7, :7], atol=0.05 * np.abs(P[:7, :7]).max())
     np.testing.assert_allclose(np.diag(C), np.diag(P[:7, :7]), rtol=0.05)
+
+
+# -- IMU biases from a still stretch before the first frame --------------------------------------
+
+def _still_rows(R_world_cam, b_g, b_a, seconds, rng, t_end=0.0, rate=200.0, wobble=0.0):
+    """IMU rows ending at ``t_end``: a still camera (its specific force gravity seen from
+    ``R_world_cam``), with biases, white noise and an optional rate wobble (rad/s)."""
+    from runtime.slam.config import SlamConfig
+
+    cfg = SlamConfig()
+    t = t_end - np.arange(int(seconds * rate), -1, -1) / rate
+    f = R_world_cam.T @ np.array([0.0, 0.0, 9.81])
+    w = b_g + rng.normal(0, cfg.imu_gyro_noise * np.sqrt(rate), (len(t), 3)) \
+        + wobble * np.sin(2 * np.pi * 1.5 * t)[:, None]
+    a = f + b_a + rng.normal(0, cfg.imu_accel_noise * np.sqrt(rate), (len(t), 3))
+    return np.column_stack([t, w, a])
+
+
+def test_a_still_stretch_before_the_start_gives_the_biases(view="near oblique"):
+    img, uv = scene(view)
+    R, _ = VIEWS[view]
+    rng = np.random.default_rng(5)
+    b_g, b_a = np.array([0.004, -0.006, 0.003]), np.array([0.08, -0.05, 0.06])
+    target = Target(RECT, uv + rng.normal(0, 1.0, uv.shape))
+    slam = MonoSLAM(CAM, imu=True)
+    slam.add_imu(_still_rows(R, b_g, b_a, 1.0, rng))
+    slam.start(img, 0.0, target)
+    s = slam.state
+    sd_g, sd_a = np.sqrt(np.diag(s.P)[13:16]), np.sqrt(np.diag(s.P)[16:19])
+    assert slam.still is not None and slam.still.seconds == pytest.approx(1.0, abs=0.01)
+    assert np.all(np.abs(s.b_g - b_g) < 3 * sd_g) and np.all(sd_g < 0.1 * slam.cfg.gyro_bias_sigma0)
+    # The accelerometer's bias rests on the start's attitude (its error times g): within its
+    # sigma of the truth, and correlated with the attitude so that, the attitude known, it is
+    # known far better than the part's prior.
+    assert np.all(np.abs(s.b_a - b_a) < 3 * sd_a)
+    P = s.P
+    cond = P[16:19, 16:19] - P[16:19, 3:7] @ np.linalg.pinv(P[3:7, 3:7], rcond=1e-10) @ P[3:7, 16:19]
+    assert np.all(np.sqrt(np.diag(cond)) < 0.1 * slam.cfg.accel_bias_sigma0)
+    assert np.all(np.sqrt(np.diag(cond)) < 0.5 * sd_a)
+    assert any("still" in m for m in slam.messages)
+
+
+@pytest.mark.parametrize("seconds, wobble", [(0.1, 0.0), (1.0, 0.05)])
+def test_no_still_stretch_keeps_the_parts_prior(seconds, wobble, view="near oblique"):
+    img, uv = scene(view)
+    R, _ = VIEWS[view]
+    rng = np.random.default_rng(6)
+    slam = MonoSLAM(CAM, imu=True)
+    slam.add_imu(_still_rows(R, np.array([0.004, 0.0, 0.0]), np.zeros(3), seconds, rng, wobble=wobble))
+    slam.start(img, 0.0, Target(RECT, uv))
+    s = slam.state
+    assert slam.still is None
+    np.testing.assert_allclose(np.sqrt(np.diag(s.P)[13:16]), slam.cfg.gyro_bias_sigma0)
+    np.testing.assert_allclose(s.b_g, 0.0)
