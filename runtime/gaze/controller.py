@@ -84,6 +84,24 @@ class GazeCommand:
     landed: bool = False
 
 
+def _gyro_rotation(imu) -> tuple[np.ndarray, float] | None:
+    """The camera's turn over a period's IMU rows (k, 7) (each rate held until the next row, the
+    last for the rows' median spacing): (R_prev_cur (3, 3), the span, s), or None without two
+    good rows."""
+    rows = np.asarray(imu, float).reshape(-1, 7)
+    rows = rows[np.isfinite(rows).all(axis=1)]
+    if len(rows) < 2:
+        return None
+    d = np.diff(rows[:, 0])
+    if not (d > 0).all():
+        return None
+    d = np.r_[d, np.median(d)]
+    R = np.eye(3)
+    for w, dk in zip(rows[:, 1:4], d):
+        R = R @ Rotation.from_rotvec(w * dk).as_matrix()
+    return R, float(d.sum())
+
+
 class GazeController:
     """Gaze control of the head from SLAM, IMU and encoders (no ground truth).
 
@@ -117,7 +135,8 @@ class GazeController:
         self.w_mount = np.zeros(3)    # world frame, rad/s
         self.q_enc = np.asarray(q0, float).copy()
         self.qd_enc = np.zeros(3)           # the encoders' rate over the last period
-        self.omega_period: np.ndarray | None = None   # the gyro's mean over the last period, camera frame
+        self.R_mount_cam_prev = forward_kinematics(head, self.q_enc).R_mount_cam
+        self.dR_cam: tuple[np.ndarray, float] | None = None   # the gyro's turn over the last period and its span, s
         self.pose_enc = forward_kinematics(head, self.q_enc)   # the head's FK at the encoder angles
         self.t = 0.0
         self._last_prompt_t = -np.inf
@@ -213,11 +232,17 @@ class GazeController:
             return
         R_wm = T[:3, :3]
         # The head's own contribution to the camera's motion over the last period.
-        w_joints_mount = pose.axes_mount.T @ self.qd_enc
         R_wc = T[:3, :3] @ pose.R_mount_cam
-        omega = self.omega_period if self.omega_period is not None else self.attitude.omega_cam
-        # Without any gyro sample the wearer's rotation is unknown: assume still.
-        self.w_mount = (R_wc @ omega - R_wm @ w_joints_mount) if self.attitude.t is not None else np.zeros(3)
+        if self.dR_cam is not None:
+            # The mount's turn over the period: the camera's (the gyro's, R_wc_prev = R_wc dR^T)
+            # less the head's (the encoders' before and after).
+            dR, span = self.dR_cam
+            turn = R_wc @ pose.R_mount_cam.T @ self.R_mount_cam_prev @ dR @ R_wc.T
+            self.w_mount = Rotation.from_matrix(turn).as_rotvec() / span
+        elif self.attitude.t is not None:
+            self.w_mount = R_wc @ self.attitude.omega_cam - R_wm @ (pose.axes_mount.T @ self.qd_enc)
+        else:
+            self.w_mount = np.zeros(3)        # without any gyro sample the wearer's rotation is unknown: still
         if v_world is not None:
             lever = R_wm @ pose.p_mount_cam                        # mount origin -> optical centre
             v_joints = R_wm @ (np.cross(pose.axes_mount, pose.p_mount_cam - pose.origins_mount).T @ self.qd_enc)
@@ -269,9 +294,8 @@ class GazeController:
         # latest gyro sample are not simultaneous when the servos reach their targets early in
         # the period (a speed-limited board), and their difference then rang through the loop.
         self.qd_enc = (enc - self.q_enc) / self.dt
-        rows = np.asarray(imu, float).reshape(-1, 7)
-        rows = rows[np.isfinite(rows).all(axis=1)]
-        self.omega_period = rows[:, 1:4].mean(axis=0) if len(rows) else None
+        self.R_mount_cam_prev = self.pose_enc.R_mount_cam
+        self.dR_cam = _gyro_rotation(imu)
         self.q_enc = enc
         self.pose_enc = forward_kinematics(self.head, enc)    # once per period, used by every mode
         self.attitude.update(imu)

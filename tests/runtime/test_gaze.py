@@ -277,3 +277,30 @@ def test_slaving_to_a_tracked_head_follows_the_mapped_angles_within_the_limits()
     np.testing.assert_allclose(q, head_to_joint_targets(ypr[-1], limits=HEAD), atol=1e-3)
     with pytest.raises(GazeRefused, match="outside the joint ranges"):
         ctl.slave([0.0, 3.0, 0.0])
+
+
+def test_the_wearers_rotation_is_the_gyro_less_the_joints_over_the_same_period():
+    """A speed-limited board moves the joints early in the period and then holds: the gyro's
+    last samples show the wearer alone, its first ones the wearer and the head. Over the period
+    the difference of the gyro's mean and the encoders' change is the wearer's rotation; the
+    latest sample less the commanded rate is not."""
+    q0 = np.radians([-10.0, 5.0, 0.0])
+    dq = np.radians([1.5, -2.0, 0.8])
+    w_wearer = np.array([0.0, 0.0, 0.4])                      # the mount turning about world up, rad/s
+    R0 = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    ctl = GazeController(HEAD, CAM, q0, DT)
+
+    def T_world_mount(t):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(w_wearer * t).as_matrix() @ R0
+        return T
+    # The period [0, DT]: the joints go from q0 to q0 + dq within its first quarter, then hold.
+    t = np.linspace(0.0, DT, 41)
+    q_t = q0 + dq * np.clip(t / (DT / 4), 0.0, 1.0)[:, None]
+    Rs = np.array([(T_world_mount(ti) @ forward_kinematics(HEAD, qi).T_mount_cam)[:3, :3] for ti, qi in zip(t, q_t)])
+    rows = imu_rows(Rs, t)
+    ctl.step(0.0, np.zeros((0, 7)), q0, T_world_cam=T_world_mount(0.0) @ forward_kinematics(HEAD, q0).T_mount_cam)
+    ctl.qd_prev = dq / DT                                       # what was commanded for the period
+    q1 = q0 + dq
+    ctl.step(DT, rows, q1, T_world_cam=T_world_mount(DT) @ forward_kinematics(HEAD, q1).T_mount_cam)
+    assert np.linalg.norm(ctl.w_mount - w_wearer) < 0.005 * np.linalg.norm(w_wearer)
