@@ -115,6 +115,110 @@ def refine_clicks(grey: np.ndarray, target: Target, search_px: float) -> Refined
     return RefinedTarget(np.asarray(target.xyz, float), np.array(refined), np.array(moved))
 
 
+#: Edge refinement of a printed quadrilateral's corners (:func:`refine_by_edges`): edge points
+#: sampled along each side (away from the corners), the search either side of the side, px,
+#: the least edge points a side needs, and the farthest a corner may move from its corner fit, px.
+EDGE_SAMPLES, EDGE_SEARCH_PX, EDGE_MIN_POINTS, EDGE_MAX_SHIFT_PX = 24, 3.0, 10, 1.5
+
+
+def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at (..., 2) pixel positions (NaN outside)."""
+    h, w = img.shape
+    x, y = pts[..., 0], pts[..., 1]
+    ok = (x >= 0) & (y >= 0) & (x <= w - 1.001) & (y <= h - 1.001)
+    x0 = np.clip(np.floor(x).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(y).astype(int), 0, h - 2)
+    fx, fy = x - x0, y - y0
+    v = ((1 - fx) * (1 - fy) * img[y0, x0] + fx * (1 - fy) * img[y0, x0 + 1]
+         + (1 - fx) * fy * img[y0 + 1, x0] + fx * fy * img[y0 + 1, x0 + 1])
+    return np.where(ok, v, np.nan)
+
+
+def _edge_points(img: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sub-pixel edge points (k, 2) along the side from pixel a to b: at each of EDGE_SAMPLES
+    places between 15% and 85% of the way, the strongest grey-level step across the side within
+    EDGE_SEARCH_PX, located by a parabola through the derivative's peak; places where the step
+    is weak or turns the other way than along the rest of the side are left out."""
+    d = b - a
+    L = float(np.linalg.norm(d))
+    if L < 8.0:
+        return np.zeros((0, 2))
+    n = np.array([-d[1], d[0]]) / L
+    steps = np.arange(-EDGE_SEARCH_PX, EDGE_SEARCH_PX + 1e-9, 0.25)
+    base = a + np.linspace(0.15, 0.85, EDGE_SAMPLES)[:, None] * d
+    prof = _sample(img, base[:, None, :] + steps[None, :, None] * n)      # (samples, steps)
+    g = np.gradient(prof, axis=1)
+    ok = np.isfinite(g).all(axis=1)
+    if ok.sum() < EDGE_MIN_POINTS:
+        return np.zeros((0, 2))
+    sign = np.sign(np.nansum(g[ok]))                   # dark to light or light to dark, as the side
+    g = np.where(np.isfinite(g), g * sign, -np.inf)
+    j = np.argmax(g, axis=1)
+    rows = np.arange(len(g))
+    peak = g[rows, j]
+    strong = ok & (peak > 0.5 * np.max(np.where(ok, peak, -np.inf)))
+    # The step's centre: the centroid of the derivative within 1.5 px of its peak (a bilinear
+    # profile's derivative is flat-topped, so a parabola through the peak cannot place it).
+    near = np.abs(steps[None, :] - steps[j][:, None]) <= 1.5
+    wgt = np.where(near & np.isfinite(g), np.maximum(g, 0.0), 0.0)
+    t = (wgt * steps[None, :]).sum(axis=1) / np.maximum(wgt.sum(axis=1), 1e-12)
+    return (base + t[:, None] * n)[strong]
+
+
+def _fit_line(xy: np.ndarray) -> np.ndarray | None:
+    """The line (3,) ``l . (x, y, 1) = 0`` with a unit normal through points (k, 2) by total
+    least squares, once more without the points beyond 3 robust sigmas."""
+    for _ in range(2):
+        if len(xy) < EDGE_MIN_POINTS:
+            return None
+        c = xy.mean(axis=0)
+        _, _, Vt = np.linalg.svd(xy - c)
+        nrm = Vt[1]
+        r = (xy - c) @ nrm
+        keep = np.abs(r) <= 3.0 * 1.4826 * np.median(np.abs(r)) + 1e-12
+        if keep.all():
+            break
+        xy = xy[keep]
+    return np.array([nrm[0], nrm[1], -nrm @ c])
+
+
+def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """The corners of a printed quadrilateral (uv (4, 2) in order round it, from a corner fit)
+    as the intersections of its sides, each fitted to the sub-pixel edge points along it: the
+    whole edge's evidence, not a corner window's (cornerSubPix leaves 0.1-0.4 px on the twin's
+    blurred, noisy frames). Sides are straight in undistorted coordinates: edge points are
+    undistorted, the lines fitted and intersected there, the corners projected back. None when
+    the points are not a convex quadrilateral, a side's edge is not found, or a corner would
+    move more than EDGE_MAX_SHIFT_PX (the corner fit is then kept)."""
+    uv = np.asarray(uv, float)
+    if uv.shape != (4, 2):
+        return None
+    e = np.roll(uv, -1, axis=0) - uv                           # side i: from corner i to i + 1
+    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    if not ((cross > 0).all() or (cross < 0).all()):
+        return None
+    img = np.ascontiguousarray(grey, np.float64)
+    lines = []
+    for i in range(4):
+        pts = _edge_points(img, uv[i], uv[(i + 1) % 4])
+        xy = undistort(cam, pts) if len(pts) else pts
+        xy = xy[np.isfinite(xy).all(axis=1)] if len(xy) else xy
+        line = _fit_line(xy) if len(xy) >= EDGE_MIN_POINTS else None
+        if line is None:
+            return None
+        lines.append(line)
+    corners = []
+    for i in range(4):
+        p = np.cross(lines[(i - 1) % 4], lines[i])          # side i-1 ends where side i begins
+        if abs(p[2]) < 1e-12:
+            return None
+        corners.append(p[:2] / p[2])
+    out = project(cam, np.column_stack([np.array(corners), np.ones(4)]))
+    if not np.isfinite(out).all() or np.linalg.norm(out - uv, axis=1).max() > EDGE_MAX_SHIFT_PX:
+        return None
+    return out
+
+
 def _pose_residuals(cam: CameraIntrinsics, xyz, uv, R_wc, r) -> np.ndarray:
     P_cam = (xyz - r) @ R_wc
     return (project(cam, P_cam) - uv).reshape(-1)
@@ -237,6 +341,10 @@ def start_hypotheses(cam: CameraIntrinsics, grey: np.ndarray, target: Target, se
     consistent pose (RMS residual above ``max_rms_px``) or leave the image."""
     ref = refine_clicks(grey, target, search_px) if search_px > 0 else \
         RefinedTarget(np.asarray(target.xyz, float), np.asarray(target.uv, float), np.zeros(len(target.xyz)))
+    if search_px > 0 and len(ref.uv) == 4:
+        edged = refine_by_edges(cam, grey, ref.uv)     # a printed quadrilateral: its sides locate it better
+        if edged is not None:
+            ref = RefinedTarget(ref.xyz, edged, np.linalg.norm(edged - np.asarray(target.uv, float), axis=1))
     hyps = pose_hypotheses(cam, ref.xyz, ref.uv, sigma_px, ambiguity_ratio)
     best = hyps[0]
     if best.rms_px > max_rms_px:
