@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from .mjcf_doc import SceneDoc
 
 SHEET_T = 0.0005   # the sheet's thickness, m
-PRINT_T = 0.0002   # the printed rectangle's thickness above the sheet, m
+PRINT_T = 0.00002  # the printed rectangle's thickness above the sheet, m (toner: its sides must not show)
 
 
 @dataclass(frozen=True)
