@@ -56,13 +56,12 @@ class RansacResult:
 
 @compiled_kernel(h_feature_kernel, rotation_kernel, rotation_derivatives_kernel, gather_jacobian)
 def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f, S, order, threshold, max_hyp,
-                       confidence, model, lens, weight):
-    """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried. A
-    hypothesis's support is its inliers' ``weight`` (m,) summed (each match's information)."""
+                       confidence, model, lens):
+    """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried."""
     n = x.shape[0]
     m = ks.shape[0]
     best = np.zeros(m, dtype=np.bool_)
-    best_count = -1.0
+    best_count = -1
     best_cost = np.inf
     n_hyp = max_hyp
     tried = 0
@@ -95,8 +94,7 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
             xj[r] = x[r] + acc
         R = rotation_kernel(xj[3], xj[4], xj[5], xj[6])
         dR = rotation_derivatives_kernel(xj[3], xj[4], xj[5], xj[6])
-        count = 0.0
-        n_in = 0
+        count = 0
         cost = 0.0
         for i in range(m):
             ki = ks[i]
@@ -104,16 +102,15 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
             e2 = (z[i, 0] - uv[0]) ** 2 + (z[i, 1] - uv[1]) ** 2 if ok else np.inf
             inl[i] = e2 < th2
             if inl[i]:
-                count += weight[i]
-                n_in += 1
-                cost += weight[i] * e2
+                count += 1
+                cost += e2
             else:
-                cost += weight[i] * th2
+                cost += th2
         if count > best_count or (count == best_count and cost < best_cost):
             best_count = count
             best_cost = cost
             best[:] = inl
-            w = n_in / m
+            w = count / m
             if w >= 1.0:
                 n_hyp = tried
             elif w > 0:
@@ -141,18 +138,12 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
     if m == 0:
         return RansacResult(low, rescued, low.copy(), 0)
     model, lens = lens_kernel_args(cam)
-    # Each match votes with its information (1 / its noise's variance, relative): the printed
-    # target's corners, measured at 0.5 px, outweigh natural features, whose depths may still be
-    # far off; and their hypotheses are tried first.
-    weight = 1.0 / r_scale
-    order = rng.permutation(m)
-    first = weight[order] > 1.0
-    order = np.concatenate([order[first], order[~first]]).astype(np.intp)
+    order = rng.permutation(m).astype(np.intp)
     low, tried = _hypotheses_kernel(state.x, state.P, state.kinds, state.starts, state.anchors, FEATURE_DIMS, ks,
                                     np.ascontiguousarray(z, float), np.ascontiguousarray(pred.uv),
                                     np.ascontiguousarray(pred.H_c), np.ascontiguousarray(pred.H_f),
                                     np.ascontiguousarray(S), order, float(threshold_px), int(max_hypotheses),
-                                    float(confidence), model, lens, np.ascontiguousarray(weight, float))
+                                    float(confidence), model, lens)
     if m == 1:
         low[:] = True                              # one match inside its own ellipse: nothing to vote
     used = np.zeros(m, bool)
