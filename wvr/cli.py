@@ -549,16 +549,23 @@ def cmd_run(args) -> int:
     rig = make_rig(cfg)
     rec = SessionRecorder(out, cfg.camera, cfg.head, start, notes={"rig": str(Path(args.rig).resolve()), "task": task.kind})
     complete, reason, s = False, "", None
+    stopped: list[str] = []
+
+    def stop_now():                                   # once, as soon as the loop ends
+        if not stopped:
+            stopped.append(rig.safe_stop(home=True))
+
     try:
         s = run_closed_loop(rig, task, out, start_target=start, seconds=args.seconds, settings=settings,
-                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec)
+                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec, on_end=stop_now)
         complete = s["ended"] in ("complete",) or s["ended"].endswith("stream ended")
         reason = s["ended"]
     except DriverError as e:
         reason = f"fault: {e}"
         raise
     finally:
-        stop = rig.safe_stop(home=True)
+        stop_now()
+        stop = stopped[0]
         rig.close()
         rep = rig.chain.report()
         rec.notes.update(safe_stop=stop, safety=rep.__dict__)

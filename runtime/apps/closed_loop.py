@@ -429,8 +429,8 @@ class ClosedLoop:
 def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: StartTarget | None = None,
                     seconds: float | None = None, settings: ControllerSettings = ControllerSettings(),
                     progress: bool = True, truth: TruthSource | None = None, label: str = "",
-                    task_info: dict | None = None, on_period: Callable[[Observation, JointCommand], None] | None = None
-                    ) -> dict:
+                    task_info: dict | None = None, on_period: Callable[[Observation, JointCommand], None] | None = None,
+                    on_end: Callable[[], None] | None = None) -> dict:
     """Run ``task`` on ``robot`` for ``seconds`` (None: until the robot's session ends or Ctrl-C);
     write joints.csv, prompts.csv, task.toml, trajectory.tum (SLAM), report.md and
     summary.json into ``out``; return the summary.
@@ -438,7 +438,9 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     ``truth`` : where the robot offers it (the twin), the truth is logged beside each period,
     written as groundtruth.txt and scored (fixation error, attitude held, ATE, tracking): read
     only between periods, never by the control step. ``on_period(obs, command)`` : called
-    every period (a session recorder). ``label`` : what the report calls the robot's setting
+    every period (a session recorder). ``on_end()`` : called as soon as the loop stops, however it
+    stops, before anything is scored or written (a rig's safe stop: the head is not left holding
+    while the plots are drawn). ``label`` : what the report calls the robot's setting
     (the scenario); ``task_info`` : extra keys for task.toml.
     """
     from .evaluate import evaluate
@@ -482,6 +484,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     finally:
         ctrl_c.restore()
         bar.close()
+        if on_end is not None:
+            on_end()
     log = loop.log
     summary = {"scenario": label or info.name, "task": task.kind, "seconds": float(log.rows[-1].t - log.rows[0].t)
                if len(log.rows) > 1 else 0.0, "frames": len(log.rows),

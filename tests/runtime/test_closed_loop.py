@@ -139,8 +139,11 @@ def test_the_control_path_runs_with_the_twins_truth_unavailable(twin, tmp_path, 
     with pytest.raises(AssertionError, match="truth"):
         twin.truth()                        # the guard bites
     twin.configure(sc, seed=0, seconds=1.5)
+    ended = []                                # on_end: once, before anything is written
     s = run_closed_loop(RobotOnly(), Task("fixate", target_xyz[None]), tmp_path, start_target=start, seconds=1.5,
-                        progress=False)
+                        progress=False, on_end=lambda: ended.append(sorted(p.name for p in tmp_path.iterdir())))
+    assert len(ended) == 1 and "joints.csv" not in ended[0] and "report.md" not in ended[0]
+    assert (tmp_path / "joints.csv").exists() and (tmp_path / "report.md").exists()
     assert not (tmp_path / "groundtruth.txt").exists() and "fixation_rms_deg" not in s
     assert s["lost_frames"] == 0 and not s["refusals"]
     # Score it now, outside the run: the true optic axis at the end is on the target.
