@@ -92,7 +92,7 @@ class RigFileError(ValueError):
 _KEYS = {
     "": {"head", "servo", "camera", "imu", "safety", "start"},
     "servo": {"driver", "port", "channels", "baud", "device", "speed_limit_deg_s", "accel_limit_deg_s2", "home_deg",
-              "calibration"},
+              "calibration", "answer_timeout_ms"},
     "servo-dynamixel": {"driver", "port", "ids", "baud", "watchdog_ms", "speed_limit_deg_s", "accel_limit_deg_s2",
                         "home_deg", "calibration"},
     "calibration": {"neutral_us", "us_per_deg", "sign", "min_us", "max_us"},
@@ -133,6 +133,7 @@ class RigConfig:
     start_target: Path | None = None
     servo_driver: str = "maestro"
     watchdog_s: float = 0.1                         # Dynamixel: each servo's bus watchdog
+    answer_timeout_s: float = 0.2                   # Maestro: how long a query waits for its answer
 
     @property
     def base(self) -> Path:
@@ -247,6 +248,10 @@ def load_rig(path: str | Path) -> RigConfig:
     watchdog_s = _number(path, sv, "watchdog_ms", "servo", 100.0) / 1000.0
     if not 0.02 <= watchdog_s <= 2.54:
         _fail(path, "servo.watchdog_ms", f"{1000 * watchdog_s:g} must lie in 20..2540 ms (the servos' 20 ms units)")
+    answer_timeout_s = _number(path, sv, "answer_timeout_ms", "servo", 200.0) / 1000.0
+    if not 0.01 <= answer_timeout_s <= 5.0:
+        _fail(path, "servo.answer_timeout_ms", f"{1000 * answer_timeout_s:g} must lie in 10..5000 ms (a Maestro answers "
+                                               "within a millisecond; 200 is the default)")
     device = sv.get("device")
     if device is not None and (isinstance(device, bool) or not isinstance(device, int) or not 0 <= device <= 127):
         _fail(path, "servo.device", f"{device!r} must be the board's device number 0..127 (default 12)")
@@ -315,7 +320,8 @@ def load_rig(path: str | Path) -> RigConfig:
                      imu_rate_hz=_number(path, im, "rate_hz", "imu", 100.0 if drv == "bno085-rvc" else 200.0),
                      gyro_bias=_vector(path, im, "gyro_bias", "imu", default=np.zeros(3)),
                      accel_bias=_vector(path, im, "accel_bias", "imu", default=np.zeros(3)),
-                     safety=safety, estop_file=estop, start_target=start, servo_driver=driver, watchdog_s=watchdog_s)
+                     safety=safety, estop_file=estop, start_target=start, servo_driver=driver, watchdog_s=watchdog_s,
+                     answer_timeout_s=answer_timeout_s)
 
 
 class ServoBoard:
@@ -398,7 +404,7 @@ def open_servo_board(cfg: RigConfig):
     ``move_slowly``, ``check_errors``, ``close``)."""
     if cfg.servo_driver == "dynamixel":
         return DynamixelBoard(cfg, DynamixelBus(cfg.port, cfg.baud, cfg.channels))
-    return ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device))
+    return ServoBoard(cfg, Maestro.open(cfg.port, cfg.baud, cfg.device, cfg.answer_timeout_s))
 
 
 class HardwareRig:

@@ -377,6 +377,8 @@ class HilSession:
         port = self.rvc_pty.path if imu == "bno085-rvc" else self.text_pty.path
         lines = ['# written by wvr sim hil: the twin behind virtual devices on pseudo-terminals', 'head = "head.toml"', "",
                  "[servo]", 'driver = "maestro"', f'port = "{self.maestro_pty.path}"',
+                 "# the virtual board answers from a thread beside the renderer: allow it a loaded machine's pauses",
+                 "answer_timeout_ms = 2000.0",
                  "channels = { " + ", ".join(f"{n} = {c}" for n, c in HIL_CHANNELS.items()) + " }", ""]
         for n, (neu, upd, sign) in self.cal.items():
             lines += [f"[servo.calibration.{n}]", f"neutral_us = {neu}", f"us_per_deg = {upd}", f"sign = {sign}",

@@ -121,7 +121,18 @@ def test_board_errors_stop_the_driver_and_garbage_is_flushed(board):
 
 
 def test_a_silent_board_a_missing_port_and_unplugging_are_one_line_errors(tmp_path):
+    from runtime.drivers.rig import load_rig, open_servo_board
+
     silent = PtyDevice(lambda data: b"", "silent")
+    # rig.toml's answer_timeout_ms reaches the driver: the silent board is given up after it.
+    rig = write_rig(tmp_path, RIG.format(port=silent.path).replace('driver = "maestro"',
+                                                                   'driver = "maestro"\nanswer_timeout_ms = 300', 1))
+    board = open_servo_board(load_rig(rig))
+    t0 = time.monotonic()
+    with pytest.raises(DriverError, match="no answer within 300 ms"):
+        board.maestro.get_errors()
+    assert 0.25 < time.monotonic() - t0 < 2.0
+    board.maestro.close()
     m = mp.Maestro.open(silent.path, answer_timeout_s=0.1)
     with pytest.raises(DriverError, match="no answer"):
         m.get_errors()
@@ -371,6 +382,10 @@ def test_rig_toml_in_the_issues_exact_form_loads(tmp_path):
     cfg = load_rig(write_rig(tmp_path))
     assert cfg.channels == (0, 1, 2) and cfg.calibration[1].sign == -1 and cfg.imu_driver == "bno085-rvc"
     assert cfg.camera_source == 0 and cfg.device is None
+    assert cfg.answer_timeout_s == 0.2
+    p = write_rig(tmp_path, RIG.format(port="/dev/ttyACM0").replace('driver = "maestro"',
+                                                                     'driver = "maestro"\nanswer_timeout_ms = 1500', 1))
+    assert load_rig(p).answer_timeout_s == 1.5
 
 
 @pytest.mark.parametrize("change, message", [
@@ -380,6 +395,7 @@ def test_rig_toml_in_the_issues_exact_form_loads(tmp_path):
     (("cyclotorsion = 2 }", "cyclotorsion = 1 }", 1), "own channel"),
     (("us_per_deg = 10.2", "us_per_dgr = 10.2", 1), "did you mean 'us_per_deg'"),
     (('driver = "bno085-rvc"', 'driver = "mpu"', 1), "imu.driver"),
+    (('driver = "maestro"', 'driver = "maestro"\nanswer_timeout_ms = 0.0', 1), "servo.answer_timeout_ms"),
 ])
 def test_rig_toml_errors_are_one_line_naming_the_key(tmp_path, change, message):
     old, new, count = change
