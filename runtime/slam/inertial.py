@@ -113,12 +113,12 @@ def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
 
 
 def imu_intervals(imu: np.ndarray, t0: float, t1: float, covered_until: float = np.inf
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split ``(t0, t1]`` at the IMU sample times: durations (k,), rates (k, 3), specific forces
-    (k, 3), each interval using the latest sample at or before its start (zero-order hold).
-    ``imu`` : (m, 7) rows ``[t, wx, wy, wz, ax, ay, az]`` sorted by time, with a sample at or
-    before t0. With ``covered_until`` (s) given, the split is also made there and a fourth array
-    (k,) bool says which intervals lie beyond it (extrapolated: no sample has described them)."""
+    (k, 3), each interval using the latest sample at or before its start (zero-order hold), and
+    which intervals (k,) bool lie beyond ``covered_until`` (s; the split is also made there):
+    held, no sample having described them. ``imu`` : (m, 7) rows ``[t, wx, wy, wz, ax, ay,
+    az]`` sorted by time, with a sample at or before t0."""
     imu = np.asarray(imu, float).reshape(-1, 7)
     times = imu[:, 0]
     i0 = int(np.searchsorted(times, t0, side="right")) - 1
@@ -134,8 +134,6 @@ def imu_intervals(imu: np.ndarray, t0: float, t1: float, covered_until: float = 
             rows = np.insert(rows, j, rows[j - 1], axis=0)
     d = np.diff(np.concatenate([starts, [t1]]))
     keep = d > 0
-    if not np.isfinite(covered_until):
-        return d[keep], rows[keep, 1:4], rows[keep, 4:7]
     return d[keep], rows[keep, 1:4], rows[keep, 4:7], starts[keep] >= covered_until
 
 
@@ -150,9 +148,7 @@ def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamCo
     motion (the frame came before the samples covering its end): that stretch takes the
     extra noise of a rate and a specific force that may have changed by ``imu_hold_rate_sigma``
     and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d)."""
-    res = imu_intervals(imu, t0, t1, covered_until)
-    ds, omegas, fs = res[:3]
-    held = res[3] if len(res) == 4 else np.zeros(len(ds), bool)
+    ds, omegas, fs, held = imu_intervals(imu, t0, t1, covered_until)
     cd = state.cam_dim
     sa = noise_gain * np.sqrt(cfg.imu_accel_noise**2 + held * cfg.imu_hold_accel_sigma**2 * ds)
     sg = noise_gain * np.sqrt(cfg.imu_gyro_noise**2 + held * cfg.imu_hold_rate_sigma**2 * ds)

@@ -122,7 +122,9 @@ EDGE_SAMPLES, EDGE_SEARCH_PX, EDGE_MIN_POINTS, EDGE_MAX_SHIFT_PX = 24, 3.0, 10, 
 
 
 def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` at (..., 2) pixel positions (NaN outside)."""
+    """Bilinear samples of ``img`` at (..., 2) pixel positions (NaN outside). Not cv2.remap:
+    OpenCV 4 quantises its linear weights to 1/32 px (5.0 no longer does), coarser than the
+    edge fit's hundredths of a pixel."""
     h, w = img.shape
     x, y = pts[..., 0], pts[..., 1]
     ok = (x >= 0) & (y >= 0) & (x <= w - 1.001) & (y <= h - 1.001)

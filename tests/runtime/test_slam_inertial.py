@@ -63,10 +63,10 @@ def test_imu_step_jacobians(d, cam_dim):
 def test_intervals_cover_the_frame_with_the_sample_holding_over_each():
     imu = np.array([[0.0, *[1, 0, 0], *[0, 0, 1]], [0.005, *[2, 0, 0], *[0, 0, 2]], [0.010, *[3, 0, 0], *[0, 0, 3]],
                     [0.015, *[4, 0, 0], *[0, 0, 4]]])
-    d, omegas, fs = imu_intervals(imu, 0.003, 0.012)
+    d, omegas, fs, held = imu_intervals(imu, 0.003, 0.012)
     np.testing.assert_allclose(d, [0.002, 0.005, 0.002], atol=1e-12)
-    assert omegas[:, 0].tolist() == [1, 2, 3] and fs[:, 2].tolist() == [1, 2, 3]
-    d, omegas, _ = imu_intervals(imu, 0.005, 0.010)              # on the sample times
+    assert omegas[:, 0].tolist() == [1, 2, 3] and fs[:, 2].tolist() == [1, 2, 3] and not held.any()
+    d, omegas, _, _ = imu_intervals(imu, 0.005, 0.010)              # on the sample times
     np.testing.assert_allclose(d, [0.005], atol=1e-12)
     assert omegas[:, 0].tolist() == [2]
     with pytest.raises(ValueError, match="no IMU sample"):
@@ -152,7 +152,7 @@ def test_prediction_covariance_is_the_product_of_the_intervals():
     t = np.r_[0.0, np.sort(rng.uniform(0.001, 0.04, 7)), 0.05]
     imu = np.column_stack([t, rng.normal(0, 1, (len(t), 3)), rng.normal(0, 5, (len(t), 3))])
     t0, t1 = 0.004, 0.037
-    ds, omegas, fs = imu_intervals(imu, t0, t1)
+    ds, omegas, fs, _ = imu_intervals(imu, t0, t1)
     x, P_vv, F_total = s.x[:19].copy(), s.P[:19, :19].copy(), np.eye(19)
     for d, w, f in zip(ds, omegas, fs):
         x, F, G = imu_step_and_jacobians(x, w, f, d)
@@ -288,7 +288,7 @@ def test_imu_stream_covering_and_gaps():
     s.add(rows(t))
     seg = s.covering(0.1, 0.2)
     assert seg is not None and seg[0, 0] <= 0.1 and seg[-1, 0] <= 0.2 and seg[-1, 0] > 0.2 - 0.005 - 1e-9
-    d, _, _ = imu_intervals(seg, 0.1, 0.2)
+    d, _, _, _ = imu_intervals(seg, 0.1, 0.2)
     np.testing.assert_allclose(d.sum(), 0.1, atol=1e-12)
     assert s.counts.gaps == 0
     assert s.covering(0.48, 0.53) is not None       # within the gap allowance at its start
