@@ -136,52 +136,63 @@ def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return np.where(ok, v, np.nan)
 
 
-def _edge_points(img: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Sub-pixel edge points (k, 2) along the side from pixel a to b: at each of EDGE_SAMPLES
-    places between 15% and 85% of the way, the strongest grey-level step across the side within
-    EDGE_SEARCH_PX, located by a parabola through the derivative's peak; places where the step
-    is weak or turns the other way than along the rest of the side are left out."""
+def _edge_points(img: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel edge points along each side from pixel a[i] to b[i] (a, b (s, 2)): points
+    (s, EDGE_SAMPLES, 2) and which are kept (s, EDGE_SAMPLES). At each of EDGE_SAMPLES places
+    between 15% and 85% of the way, the strongest grey-level step across the side within
+    EDGE_SEARCH_PX; places where the step is weak or turns the other way than along the rest of
+    its side are left out, and so is every place of a side shorter than 8 px or with too few."""
     d = b - a
-    L = float(np.linalg.norm(d))
-    if L < 8.0:
-        return np.zeros((0, 2))
-    n = np.array([-d[1], d[0]]) / L
+    L = np.linalg.norm(d, axis=1)
+    n = np.column_stack([-d[:, 1], d[:, 0]]) / np.maximum(L, 1e-12)[:, None]
     steps = np.arange(-EDGE_SEARCH_PX, EDGE_SEARCH_PX + 1e-9, 0.25)
-    base = a + np.linspace(0.15, 0.85, EDGE_SAMPLES)[:, None] * d
-    prof = _sample(img, base[:, None, :] + steps[None, :, None] * n)      # (samples, steps)
-    g = np.gradient(prof, axis=1)
-    ok = np.isfinite(g).all(axis=1)
-    if ok.sum() < EDGE_MIN_POINTS:
-        return np.zeros((0, 2))
-    sign = np.sign(np.nansum(g[ok]))                   # dark to light or light to dark, as the side
-    g = np.where(np.isfinite(g), g * sign, -np.inf)
-    j = np.argmax(g, axis=1)
-    rows = np.arange(len(g))
-    peak = g[rows, j]
-    strong = ok & (peak > 0.5 * np.max(np.where(ok, peak, -np.inf)))
+    base = a[:, None, :] + np.linspace(0.15, 0.85, EDGE_SAMPLES)[None, :, None] * d[:, None, :]   # (s, k, 2)
+    g = np.gradient(_sample(img, base[:, :, None, :] + steps[None, None, :, None] * n[:, None, None, :]), axis=2)
+    finite = np.isfinite(g)
+    ok = finite.all(axis=2)                                                  # (s, k)
+    g = np.where(finite, g, 0.0)
+    sign = np.sign((g * ok[:, :, None]).sum(axis=(1, 2)))                 # dark to light or light to dark
+    g = np.where(finite, g * sign[:, None, None], -np.inf)
+    j = np.argmax(g, axis=2)
+    peak = np.take_along_axis(g, j[:, :, None], axis=2)[:, :, 0]
+    strong = ok & (peak > 0.5 * np.max(np.where(ok, peak, -np.inf), axis=1, keepdims=True))
     # The step's centre: the centroid of the derivative within 1.5 px of its peak (a bilinear
-    # profile's derivative is flat-topped, so a parabola through the peak cannot place it).
-    near = np.abs(steps[None, :] - steps[j][:, None]) <= 1.5
-    wgt = np.where(near & np.isfinite(g), np.maximum(g, 0.0), 0.0)
-    t = (wgt * steps[None, :]).sum(axis=1) / np.maximum(wgt.sum(axis=1), 1e-12)
-    return (base + t[:, None] * n)[strong]
-
-
-def _fit_line(xy: np.ndarray) -> np.ndarray | None:
-    """The line (3,) ``l . (x, y, 1) = 0`` with a unit normal through points (k, 2) by total
-    least squares, once more without the points beyond 3 robust sigmas."""
+    # profile's derivative is flat-topped, so a parabola through the peak cannot place it),
+    # taken again about the first centroid so that which end of a flat top the argmax chose
+    # does not move it.
+    pos = np.maximum(g, 0.0)
+    t = steps[j]
     for _ in range(2):
-        if len(xy) < EDGE_MIN_POINTS:
+        wgt = np.where(np.abs(steps - t[:, :, None]) <= 1.5, pos, 0.0)
+        t = (wgt * steps).sum(axis=2) / np.maximum(wgt.sum(axis=2), 1e-12)
+    keep = strong & ((L >= 8.0) & (ok.sum(axis=1) >= EDGE_MIN_POINTS))[:, None]
+    return base + t[:, :, None] * n[:, None, :], keep
+
+
+def _fit_lines(xy: np.ndarray, keep: np.ndarray) -> np.ndarray | None:
+    """The lines (s, 3) ``l . (x, y, 1) = 0`` with unit normals through each side's kept points
+    (xy (s, k, 2), keep (s, k)) by total least squares, once more without the points beyond 3
+    robust sigmas; None if a side has fewer than EDGE_MIN_POINTS."""
+    keep = keep & np.isfinite(xy).all(axis=2)
+    xy = np.where(keep[:, :, None], xy, 0.0)
+    for _ in range(2):
+        cnt = keep.sum(axis=1)
+        if cnt.min() < EDGE_MIN_POINTS:
             return None
-        c = xy.mean(axis=0)
-        _, _, Vt = np.linalg.svd(xy - c)
-        nrm = Vt[1]
-        r = (xy - c) @ nrm
-        keep = np.abs(r) <= 3.0 * 1.4826 * np.median(np.abs(r)) + 1e-12
-        if keep.all():
+        c = (xy * keep[:, :, None]).sum(axis=1) / cnt[:, None]
+        dxy = (xy - c[:, None, :]) * keep[:, :, None]
+        sxx, syy, sxy = (dxy[:, :, 0] ** 2).sum(1), (dxy[:, :, 1] ** 2).sum(1), (dxy[:, :, 0] * dxy[:, :, 1]).sum(1)
+        ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)         # each scatter's major axis; the normal is across it
+        nrm = np.column_stack([-np.sin(ang), np.cos(ang)])
+        r = np.abs(np.einsum("skj,sj->sk", dxy, nrm))
+        srt = np.sort(np.where(keep, r, np.inf), axis=1)        # each side's median (nanmedian is slow)
+        rows = np.arange(len(srt))
+        mad = 0.5 * (srt[rows, (cnt - 1) // 2] + srt[rows, cnt // 2])
+        inside = keep & (r <= 3.0 * 1.4826 * mad[:, None] + 1e-12)
+        if (inside == keep).all():
             break
-        xy = xy[keep]
-    return np.array([nrm[0], nrm[1], -nrm @ c])
+        keep = inside
+    return np.column_stack([nrm, -(nrm * c).sum(axis=1)])
 
 
 def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
@@ -195,27 +206,33 @@ def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> 
     uv = np.asarray(uv, float)
     if uv.shape != (4, 2):
         return None
-    e = np.roll(uv, -1, axis=0) - uv                           # side i: from corner i to i + 1
-    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    nxt = uv[[1, 2, 3, 0]]
+    e = nxt - uv                                              # side i: from corner i to i + 1
+    e2 = e[[1, 2, 3, 0]]
+    cross = e[:, 0] * e2[:, 1] - e[:, 1] * e2[:, 0]
     if not ((cross > 0).all() or (cross < 0).all()):
         return None
-    img = np.ascontiguousarray(grey, np.float64)
-    lines = []
-    for i in range(4):
-        pts = _edge_points(img, uv[i], uv[(i + 1) % 4])
-        xy = undistort(cam, pts) if len(pts) else pts
-        xy = xy[np.isfinite(xy).all(axis=1)] if len(xy) else xy
-        line = _fit_line(xy) if len(xy) >= EDGE_MIN_POINTS else None
-        if line is None:
-            return None
-        lines.append(line)
-    corners = []
-    for i in range(4):
-        p = np.cross(lines[(i - 1) % 4], lines[i])          # side i-1 ends where side i begins
-        if abs(p[2]) < 1e-12:
-            return None
-        corners.append(p[:2] / p[2])
-    out = project(cam, np.column_stack([np.array(corners), np.ones(4)]))
+    # Only the quadrilateral's neighbourhood is read (the whole frame's conversion would cost
+    # more than the fit).
+    h, w = grey.shape[:2]
+    pad = EDGE_SEARCH_PX + 2.0
+    lo = np.maximum(np.floor(uv.min(axis=0) - pad), 0).astype(int)
+    hi = np.minimum(np.ceil(uv.max(axis=0) + pad).astype(int) + 1, (w, h))
+    if (hi - lo).min() < 2:
+        return None
+    img = np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float64)
+    pts, keep = _edge_points(img, uv - lo, nxt - lo)
+    if keep.sum(axis=1).min() < EDGE_MIN_POINTS:
+        return None
+    xy = undistort(cam, (pts + lo).reshape(-1, 2)).reshape(pts.shape)
+    lines = _fit_lines(xy, keep)
+    if lines is None:
+        return None
+    l1, l2 = lines[[3, 0, 1, 2]], lines                        # side i-1 ends where side i begins
+    p = np.cross(l1, l2)
+    if (np.abs(p[:, 2]) < 1e-12).any():
+        return None
+    out = project(cam, np.column_stack([p[:, :2] / p[:, 2:], np.ones(4)]))
     if not np.isfinite(out).all() or np.linalg.norm(out - uv, axis=1).max() > EDGE_MAX_SHIFT_PX:
         return None
     return out
