@@ -122,7 +122,8 @@ class MapSettings:
     reloc_sigma_rad: float = 0.02
     # -- start-up from the known target --
     target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
-    known_sigma_px: float = 0.25         # a target corner's match, px (measured on the twin: 0.23 px std)
+    known_sigma_px: float = 0.25         # a target corner's measurement, px (its sides: 0.04-0.26 px off)
+    known_edges: bool = True             # a printed rectangle's corners placed each frame by its fitted sides
     click_search_px: float = 6.0         # a clicked corner is sought this far from the click
     start_pixel_sigma: float = 0.5       # a refined corner's standard deviation, px
     start_max_rms_px: float = 1.5        # the refined corners must fit one pose this well

@@ -8,7 +8,8 @@ Each frame:
    to their first view for the template to hold), at most ``measure_max`` of them, spread over
    the image;
 3. **search** each inside the 3-sigma ellipse of its innovation covariance (search.py), with
-   its template warped by its plane where one is known (templates.py);
+   its template warped by its plane where one is known (templates.py); a printed quadrilateral
+   target found whole is then placed by its fitted sides, as at the start (``known_edges``);
 4. **1-point RANSAC** (ransac.py): the low-innovation inliers update the filter, then the
    high-innovation ones are rescued by a chi-square test and update it again;
 5. **map management**: inverse-depth features whose depth has become linear turn into points;
@@ -52,7 +53,7 @@ from .ransac import one_point_ransac
 from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
-from .startup import PoseHypothesis, RefinedTarget, SlamStartError, start_hypotheses
+from .startup import PoseHypothesis, RefinedTarget, SlamStartError, refine_by_edges, start_hypotheses
 from .state import BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, POSE_DIM, SlamNumericalError, State, check_covariance
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
@@ -301,6 +302,8 @@ class _Track:
         z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
                                      s.match_score, s.max_search_area_px)
         z[~found] = np.nan
+        if s.known_edges:
+            self._known_by_edges(g, feats, z)
         for f in feats:
             f.attempts += 1
         st.searched = m
@@ -339,6 +342,22 @@ class _Track:
         d2 = np.where(res.used, np.minimum(d2, gate), gate)
         self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
         return visible
+
+    def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray) -> None:
+        """A printed quadrilateral target found whole is located by its fitted sides (as at the
+        start), not by its corners' templates: the template, cut once at the start and warped by
+        the estimated pose, carries that pose's error into every match."""
+        rows = [j for j, f in enumerate(feats) if f.known]
+        target = self.slam.refined_target
+        if len(rows) != 4 or target is None or len(target.xyz) != 4:
+            return
+        rows.sort(key=lambda j: feats[j].id)
+        quad = z[rows]
+        if not np.isfinite(quad).all():
+            return
+        edged = refine_by_edges(self.slam.cam, g, quad)
+        if edged is not None:
+            z[rows] = edged
 
     # ------------------------------------------------------------------ map management
     def _convert(self, st: FrameStats) -> None:
