@@ -1,7 +1,7 @@
 """SLAM accuracy on the twin (issue 14's numbers), over seeds the SLAM was not tuned on.
 
 Every figure is ATE RMSE without alignment (the target fixes the frame), against the twin's
-ground truth, over the report seeds (default 2-6; the settings were chosen on seeds 0-1, see
+ground truth, over the report seeds (default 2-6; the settings were chosen on seeds 0, 1, 7 and 8, see
 benchmarks/NOTES.md), given as median and worst per scenario:
 
 - camera only (the paper's system): the static scenes at most 1 cm; walk, sit-down and the
