@@ -141,7 +141,7 @@ def _edge_points(img: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndar
     (s, EDGE_SAMPLES, 2) and which are kept (s, EDGE_SAMPLES). At each of EDGE_SAMPLES places
     between 15% and 85% of the way, the strongest grey-level step across the side within
     EDGE_SEARCH_PX; places where the step is weak or turns the other way than along the rest of
-    its side are left out, and so is every place of a side shorter than 8 px or with too few."""
+    its side are left out, and so is every place of a side shorter than 8 px."""
     d = b - a
     L = np.linalg.norm(d, axis=1)
     n = np.column_stack([-d[:, 1], d[:, 0]]) / np.maximum(L, 1e-12)[:, None]
@@ -165,7 +165,7 @@ def _edge_points(img: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndar
     for _ in range(2):
         wgt = np.where(np.abs(steps - t[:, :, None]) <= 1.5, pos, 0.0)
         t = (wgt * steps).sum(axis=2) / np.maximum(wgt.sum(axis=2), 1e-12)
-    keep = strong & ((L >= 8.0) & (ok.sum(axis=1) >= EDGE_MIN_POINTS))[:, None]
+    keep = strong & (L >= 8.0)[:, None]
     return base + t[:, :, None] * n[:, None, :], keep
 
 
@@ -222,8 +222,6 @@ def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> 
         return None
     img = np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float64)
     pts, keep = _edge_points(img, uv - lo, nxt - lo)
-    if keep.sum(axis=1).min() < EDGE_MIN_POINTS:
-        return None
     xy = undistort(cam, (pts + lo).reshape(-1, 2)).reshape(pts.shape)
     lines = _fit_lines(xy, keep)
     if lines is None:
