@@ -63,6 +63,17 @@ __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "Sl
 _GRID = (4, 3)
 
 
+def cap_victims(excess: int, last_seen: np.ndarray, in_view: np.ndarray, is_point: np.ndarray) -> np.ndarray:
+    """The ``excess`` candidates (indices into the (m,) arrays) that leave a map over its size
+    cap: those predicted in view this frame last (the frame's tracking rests on them); of the
+    rest, inverse-depth features before points, and within each the one seen longest ago (frame
+    index ``last_seen``) first. A point out of view is the map's memory of a place, which
+    re-observed pulls a drifted pose back; an inverse-depth feature out of view has an
+    unsettled depth, and seen again it constrains the pose little."""
+    order = np.lexsort((np.asarray(last_seen), np.asarray(is_point, bool), np.asarray(in_view, bool)))
+    return order[:max(int(excess), 0)]
+
+
 @dataclass
 class SearchView:
     """The last frame's active search, for displays and diagnostics: the features searched, by
@@ -156,6 +167,7 @@ class _Track:
         self.localised = localised
         self.score = 0.0
         self.last: SearchView | None = None
+        self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
 
     @property
     def lost(self) -> bool:
@@ -259,6 +271,7 @@ class _Track:
         ok &= view_ok
         sel = np.flatnonzero(ok)
         pred = Prediction(pred.ks[sel], pred.uv[sel], pred.H_c[sel], pred.H_f[sel], pred.valid[sel])
+        self.in_view_ids = {self.features[k].id for k in pred.ks}
         r_scale = r_scale[sel]
         S = innovation_covariances(st, pred, self.slam.cfg.sigma_pixel**2, r_scale)
         area = 9 * math.pi * np.sqrt(np.maximum(np.linalg.det(S), 0))   # the 3-sigma ellipse, px^2
@@ -377,7 +390,8 @@ class _Track:
     def _delete(self, st: FrameStats, frame: int) -> None:
         """MonoSLAM's rule (inlier matches below ``delete_ratio`` of searches after
         ``delete_min_attempts``), a quicker one for new features that fail from the start, and
-        the map's size cap: beyond ``max_features`` the natural features seen longest ago go."""
+        the map's size cap: beyond ``max_features`` natural features go in :func:`cap_victims`'
+        order (out of view first, inverse-depth before points, seen longest ago first)."""
         s = self.slam.settings
         state = self.state
         bad = []
@@ -396,9 +410,13 @@ class _Track:
                 bad.append(k)          # its depth went behind the first view: a mismatch's trace
         excess = len(self.features) - len(bad) - s.max_features
         if excess > 0:
-            keep = [k for k in range(len(self.features)) if k not in set(bad) and not self.features[k].known]
-            keep.sort(key=lambda k: self.features[k].last_seen)
-            bad += keep[:excess]
+            gone = set(bad)
+            keep = np.array([k for k in range(len(self.features)) if k not in gone and not self.features[k].known],
+                            np.intp)
+            fs = [self.features[k] for k in keep]
+            victims = cap_victims(excess, np.array([f.last_seen for f in fs]),
+                                  np.array([f.id in self.in_view_ids for f in fs], bool), state.kinds[keep] == POINT)
+            bad += keep[victims].tolist()
         if bad:
             bad = sorted(set(bad))
             state.remove_features(bad)
