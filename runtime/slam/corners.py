@@ -31,9 +31,10 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     b = int(np.ceil(border / s))
     mask = np.zeros((h, w), np.uint8)
     mask[b:h - b, b:w - b] = 255
-    for u, v in np.asarray(occupied_uv, float).reshape(-1, 2):
-        if np.isfinite(u) and np.isfinite(v):
-            cv2.circle(mask, (int(round(u / s)), int(round(v / s))), int(np.ceil(min_distance / s)), 0, -1)
+    occ = np.asarray(occupied_uv, float).reshape(-1, 2)
+    radius = int(np.ceil(min_distance / s))
+    for u, v in np.rint(occ[np.isfinite(occ).all(axis=1)] / s).astype(int).tolist():
+        cv2.circle(mask, (u, v), radius, 0, -1)
     pts = cv2.goodFeaturesToTrack(img, maxCorners=n, qualityLevel=quality, minDistance=min_distance / s, mask=mask,
                                   blockSize=5 if s == 1 else 3, useHarrisDetector=False)
     if pts is None:

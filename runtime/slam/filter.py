@@ -130,7 +130,8 @@ def innovation_covariances(state: State, pred: Prediction, R_pix, r_scale=None) 
 def _pht_kernel(P, U, r, kinds, starts, dims, ks, H_c, H_f):
     """``P H^T`` (n, 2m) for the measurements of features ``ks`` under ``P = P0 - U U^T``
     (``U`` (n, >= r), its first ``r`` columns in use), touching only the (7 + dim) columns of
-    ``P0`` each row pair of H has, and ``H U`` (2m, r)."""
+    ``P0`` each row pair of H has (read as rows: the state keeps ``P0`` exactly symmetric), and
+    ``H U`` (2m, r)."""
     n = P.shape[0]
     m = ks.shape[0]
     PHt = np.zeros((n, 2 * m))
@@ -147,7 +148,7 @@ def _pht_kernel(P, U, r, kinds, starts, dims, ks, H_c, H_f):
                     continue
                 j = u if u < POSE_DIM else s + u - POSE_DIM
                 for row in range(n):
-                    PHt[row, col] += P[row, j] * h
+                    PHt[row, col] += P[j, row] * h
                 for c in range(r):
                     HU[col, c] += h * U[j, c]
     return PHt, HU

@@ -263,8 +263,9 @@ def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, 
     return out, done
 
 
-def _search(grey, tpl, uv, S, n2, max_area):
-    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none)."""
+def _search(grey, tpl, uv, S, n2, max_area, max_score):
+    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none); only a
+    match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
     a, c = S[0, 0], S[1, 1]
@@ -280,7 +281,7 @@ def _search(grey, tpl, uv, S, n2, max_area):
     roi = grey[v0 - h:v1 + h + 1, u0 - h:u1 + h + 1]
     ncc = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
     u, v, s = _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2)
-    if np.isfinite(u):
+    if np.isfinite(u) and s <= max_score:
         ur, vr, ok = refine_affine_kernel(grey, tpl, u, v, 10, 0.005, AFFINE_DAMPING)
         if ok:
             u, v = ur, vr
@@ -323,9 +324,9 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
                                np.ascontiguousarray(x_v[:3], float), quat_to_rotation(x_v[3:7]), model, lens)
     n2 = n_sigma * n_sigma
     for i in range(m):
-        u, v, s = _search(grey, tpls[i], uv[i], S[i], n2, max_area)
+        u, v, s = _search(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
         if s > max_score and warped[i]:
-            u, v, s = _search(grey, templates[i], uv[i], S[i], n2, max_area)
+            u, v, s = _search(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
         z[i], score[i] = (u, v), s
     found = score <= max_score
     return z, score, found
