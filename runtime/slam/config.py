@@ -74,6 +74,7 @@ class MapSettings:
     new_per_frame: int = 4               # new features started in one frame, at most
     min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
+    noise_every: int = 15                # frames between estimates of the image noise (new features' contrast)
     # -- inverse depth (Civera et al.) --
     rho0: float = 1.0                    # initial inverse depth, 1/m
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity

@@ -42,13 +42,46 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     return pts.reshape(-1, 2).astype(float) * s        # pyrDown samples input pixel (2x, 2y)
 
 
+#: Immerkaer's noise kernel: the difference of two Laplacians, blind to a local plane; on noise
+#: of standard deviation sigma its response has standard deviation 6 sigma (sqrt of 36).
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+def noise_sigma(image_grey: np.ndarray, step: int = 2) -> float:
+    """The image noise's standard deviation, grey levels (Immerkaer, "Fast noise variance
+    estimation", 1996, with the median absolute response instead of the mean, so that edges and
+    texture, a minority of pixels, do not count): ``1.4826 median|I * N| / 6`` over every
+    ``step``-th row and column. An 8-bit image's response is a whole number, so the median is
+    interpolated within its unit bin (the grouped-data median) rather than jumping a level."""
+    r = cv2.filter2D(np.asarray(image_grey, np.float32), cv2.CV_32F, _NOISE_KERNEL)[1:-1:step, 1:-1:step]
+    a = np.rint(np.abs(r)).astype(np.intp).ravel()
+    if a.size == 0:
+        return 0.0
+    counts = np.bincount(a)
+    below = np.cumsum(counts) - counts                    # responses under each whole value
+    k = int(np.searchsorted(np.cumsum(counts), a.size / 2.0))
+    median = max(k - 0.5 + (a.size / 2.0 - below[k]) / counts[k], 0.0)
+    return float(1.4826 * median / 6.0)
+
+
+def min_template_std(sigma_noise: float, match_score: float) -> float:
+    """The least standard deviation (grey levels) a new feature's template needs for image noise
+    alone not to fail its match. Two copies of a template of signal variance s^2, each with
+    noise sigma^2, score ``2 (1 - ZNCC) = 2 sigma^2 / (s^2 + sigma^2)`` in expectation, where
+    s^2 + sigma^2 is the template's measured variance; below ``std = sigma sqrt(2 /
+    match_score)`` (2.8 sigma at 0.25) noise alone reaches the threshold. Never below 2 (a flat
+    patch)."""
+    return max(2.0, sigma_noise * np.sqrt(2.0 / max(match_score, 1e-9)))
+
+
 def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: int = TEMPLATE_SIZE,
-                 **kw) -> list[tuple[np.ndarray, np.ndarray]]:
-    """[(uv (2,), template (size, size))] for up to n new corners (corners too near the border
-    skipped)."""
+                 min_std: float = 2.0, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(uv (2,), template (size, size))] for up to n new corners whose templates have a standard
+    deviation above ``min_std`` grey levels (see :func:`min_template_std`); corners too near the
+    border skipped."""
     out = []
     for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), size // 2 + 1), **kw):
         t = extract_template(image_grey, uv, size)
-        if t is not None and t.std() > 2.0:   # a flat patch cannot be matched
+        if t is not None and t.std() > min_std:
             out.append((np.round(uv), t))
     return out

@@ -40,7 +40,7 @@ from kinematics.camera import project as project_points
 
 from ..sequence import Target
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
-from .corners import grey, new_features
+from .corners import grey, min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
 from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, convert_to_point,
@@ -444,7 +444,7 @@ class _Track:
         if n <= 0:
             return
         scale = cam.width / 640.0
-        candidates = new_features(g, self._occupied(), 4 * n, size=slam.template_px,
+        candidates = new_features(g, self._occupied(), 4 * n, size=slam.template_px, min_std=slam.min_template_std(g),
                                   min_distance=s.min_distance_px * scale, border=max(int(20 * scale), slam.template_px))
         if candidates:
             stay = slam.stay_in_view(self.state.x_v, np.array([uv for uv, _ in candidates]))
@@ -596,6 +596,7 @@ class MonoSLAM:
         self.nis_limit = float(chi2.ppf(settings.consistency_confidence, 2 * settings.consistency_window))
         self.refined_target: RefinedTarget | None = None
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave
+        self._noise: tuple[int, float] | None = None   # (frame, image noise sigma) last estimated
 
     # -------------------------------------------------------------- views
     @property
@@ -846,6 +847,14 @@ class MonoSLAM:
         st = FrameStats(self.frame, t, skipped=why, lost=self.lost, map_size=self.state.n_features)
         self.stats.append(st)
         return st
+
+    def min_template_std(self, g: np.ndarray) -> float:
+        """The contrast a new feature's template needs to be matched through this camera's noise
+        (corners.min_template_std); the noise is estimated from the image every
+        ``noise_every`` frames, since the exposure's gain moves it slowly."""
+        if self._noise is None or self.frame - self._noise[0] >= self.settings.noise_every:
+            self._noise = (self.frame, noise_sigma(g))
+        return min_template_std(self._noise[1], self.settings.match_score)
 
     def stay_in_view(self, x_v: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(k,) bool: whether each pixel's point (at 1 m) is still inside the image, ``margin_px``
