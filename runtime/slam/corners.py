@@ -58,8 +58,9 @@ def noise_sigma(image_grey: np.ndarray, step: int = 2) -> float:
     if a.size == 0:
         return 0.0
     counts = np.bincount(a)
-    below = np.cumsum(counts) - counts                    # responses under each whole value
-    k = int(np.searchsorted(np.cumsum(counts), a.size / 2.0))
+    upto = np.cumsum(counts)
+    below = upto - counts                                 # responses under each whole value
+    k = int(np.searchsorted(upto, a.size / 2.0))
     median = max(k - 0.5 + (a.size / 2.0 - below[k]) / counts[k], 0.0)
     return float(1.4826 * median / 6.0)
 

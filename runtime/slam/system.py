@@ -444,7 +444,7 @@ class _Track:
         if n <= 0:
             return
         scale = cam.width / 640.0
-        candidates = new_features(g, self._occupied(), 4 * n, size=slam.template_px, min_std=slam.min_template_std(g),
+        candidates = new_features(g, self._occupied(), 4 * n, size=slam.template_px, min_std=slam.contrast_floor(g),
                                   min_distance=s.min_distance_px * scale, border=max(int(20 * scale), slam.template_px))
         if candidates:
             stay = slam.stay_in_view(self.state.x_v, np.array([uv for uv, _ in candidates]))
@@ -848,7 +848,7 @@ class MonoSLAM:
         self.stats.append(st)
         return st
 
-    def min_template_std(self, g: np.ndarray) -> float:
+    def contrast_floor(self, g: np.ndarray) -> float:
         """The contrast a new feature's template needs to be matched through this camera's noise
         (corners.min_template_std); the noise is estimated from the image every
         ``noise_every`` frames, since the exposure's gain moves it slowly."""
