@@ -16,6 +16,12 @@ background slides. With the EKF prior, one match is enough to hypothesise the wh
 
 Here every match is a possible hypothesis and there are tens of them, so the hypotheses are the
 matches in a seeded random order, at most ``max_hypotheses`` of them.
+
+A hypothesis's support may weigh its inliers (``votes``): the caller gives each match the chance
+that its feature's matches are true ones. New features whose depths are still guesses sit
+close together in the image's empty parts and can agree, as a cluster, on a wrong motion that
+outnumbers fewer established points spread over the image; weighted, the established points'
+consensus wins. The sampling and the adaptive count are Civera et al.'s, by matches.
 """
 
 from __future__ import annotations
@@ -56,12 +62,13 @@ class RansacResult:
 
 @compiled_kernel(h_feature_kernel, rotation_kernel, rotation_derivatives_kernel, gather_jacobian)
 def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f, S, order, threshold, max_hyp,
-                       confidence, model, lens):
-    """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried."""
+                       confidence, votes, model, lens):
+    """The best 1-point hypothesis's inlier mask (m,) and the number of hypotheses tried: the
+    most ``votes`` (m,) among its inliers, then the least cost."""
     n = x.shape[0]
     m = ks.shape[0]
     best = np.zeros(m, dtype=np.bool_)
-    best_count = -1
+    best_support = -1.0
     best_cost = np.inf
     n_hyp = max_hyp
     tried = 0
@@ -95,6 +102,7 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
         R = rotation_kernel(xj[3], xj[4], xj[5], xj[6])
         dR = rotation_derivatives_kernel(xj[3], xj[4], xj[5], xj[6])
         count = 0
+        support = 0.0
         cost = 0.0
         for i in range(m):
             ki = ks[i]
@@ -103,11 +111,12 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
             inl[i] = e2 < th2
             if inl[i]:
                 count += 1
+                support += votes[i]
                 cost += e2
             else:
                 cost += th2
-        if count > best_count or (count == best_count and cost < best_cost):
-            best_count = count
+        if support > best_support or (support == best_support and cost < best_cost):
+            best_support = support
             best_cost = cost
             best[:] = inl
             w = count / m
@@ -121,18 +130,22 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
 def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraIntrinsics, R_pix,
                      pred: Prediction, S: np.ndarray, threshold_px: float, max_hypotheses: int,
                      confidence: float, rescue_chi2: float, rng: np.random.Generator,
-                     r_scale: np.ndarray | None = None) -> RansacResult:
+                     r_scale: np.ndarray | None = None, votes: np.ndarray | None = None) -> RansacResult:
     """Select the inliers among the matches ``z`` (m, 2) px of the distinct features ``ks`` and
     update the state with them, in place (the three steps of the module docstring).
 
     ``pred``, ``S`` : the features' predictions and innovation covariances at the prior (the
     ones the search used). ``r_scale`` (m,) : each measurement's noise variance as a multiple of
-    ``R_pix`` (default 1). An update refused for numerical reasons leaves the state as it was
+    ``R_pix`` (default 1). ``votes`` (m,) : what each match's agreement counts for in choosing
+    the hypothesis (default 1 each). An update refused for numerical reasons leaves the state as it was
     and its matches unused.
     """
     ks = np.asarray(ks, np.intp)
     m = len(ks)
     r_scale = np.ones(m) if r_scale is None else np.asarray(r_scale, float)
+    votes = np.ones(m) if votes is None else np.ascontiguousarray(votes, float).reshape(m)
+    if not (np.isfinite(votes).all() and (votes > 0).all()):
+        raise ValueError("one_point_ransac: votes must be finite and positive")
     low = np.zeros(m, bool)
     rescued = np.zeros(m, bool)
     if m == 0:
@@ -143,7 +156,7 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
                                     np.ascontiguousarray(z, float), np.ascontiguousarray(pred.uv),
                                     np.ascontiguousarray(pred.H_c), np.ascontiguousarray(pred.H_f),
                                     np.ascontiguousarray(S), order, float(threshold_px), int(max_hypotheses),
-                                    float(confidence), model, lens)
+                                    float(confidence), votes, model, lens)
     if m == 1:
         low[:] = True                              # one match inside its own ellipse: nothing to vote
     used = np.zeros(m, bool)

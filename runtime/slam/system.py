@@ -10,8 +10,9 @@ Each frame:
 3. **search** each inside the 3-sigma ellipse of its innovation covariance (search.py), with
    its template warped by its plane where one is known (templates.py); a printed quadrilateral
    target found whole is then placed by its fitted sides, as at the start (``known_edges``);
-4. **1-point RANSAC** (ransac.py): the low-innovation inliers update the filter, then the
-   high-innovation ones are rescued by a chi-square test and update it again;
+4. **1-point RANSAC** (ransac.py; each match votes for a hypothesis with its feature's record of
+   inlier matches): the low-innovation inliers update the filter, then the high-innovation ones
+   are rescued by a chi-square test and update it again;
 5. **map management**: inverse-depth features whose depth has become linear turn into points;
    features whose ratio of inlier matches to searches falls below 1:2 are deleted; when fewer
    than ``visible_min`` features are predicted visible, new ones start on Shi-Tomasi corners in
@@ -332,7 +333,7 @@ class _Track:
         rng = np.random.default_rng((slam.seed, frame))
         res = one_point_ransac(self.state, sub.ks, z[fi], cam, slam.cfg.sigma_pixel**2, sub, S[fi],
                                s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
-                               r_scale[fi])
+                               r_scale[fi], votes=self._votes(sub.ks))
         for j, k in enumerate(sub.ks):
             if res.used[j]:
                 self.features[k].successes += 1
@@ -355,6 +356,11 @@ class _Track:
         d2 = np.where(res.used, np.minimum(d2, gate), gate)
         self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
         return visible
+
+    def _votes(self, ks: np.ndarray) -> np.ndarray:
+        """Each match's vote for a 1-point hypothesis: the chance its feature's match is a true
+        one, from its record (inlier matches over searches, with a prior of one in two)."""
+        return np.array([(self.features[k].successes + 1) / (self.features[k].attempts + 2) for k in ks], float)
 
     def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray) -> None:
         """A printed quadrilateral target found whole is located by its fitted sides (as at the

@@ -33,6 +33,17 @@ def ransac(state, ks, z, pred, S_prior, rng_seed=0, R_pix=1.0, threshold=S.ransa
                             RESCUE_99, np.random.default_rng(rng_seed))
 
 
+def draw_camera(s: State, rng: np.random.Generator):
+    """A camera (r (3,), R (3, 3)) drawn from the state's own pose covariance about its mean."""
+    G = np.zeros((7, 6))
+    G[:3, 3:] = np.eye(3)
+    G[3:7, :3] = dq_dtheta_right(s.q)
+    Gi = np.linalg.pinv(G)
+    P6 = Gi @ s.P[:7, :7] @ Gi.T
+    d = rng.multivariate_normal(np.zeros(6), 0.5 * (P6 + P6.T))
+    return s.r + d[3:], quat_to_rotation(quat_multiply(s.q, rotvec_to_quat(d[:3])))
+
+
 def scene(seed: int, m: int = 30, outlier_fraction: float = 0.3, noise_px: float = 0.3, gap_px: float = 12.0,
           camera_sigma=(0.002, 0.002, 0.05, 0.1)):
     """A map of ``m`` points 1.5 to 5 m ahead (known to 3 mm), the camera predicted one frame
@@ -56,13 +67,7 @@ def scene(seed: int, m: int = 30, outlier_fraction: float = 0.3, noise_px: float
     for y in Y:
         s.add_feature(POINT, y, sig_y**2 * np.eye(3), np.zeros((3, s.n)))
     predict_motion(s, 1 / 30, SlamConfig())
-    G = np.zeros((7, 6))
-    G[:3, 3:] = np.eye(3)
-    G[3:7, :3] = dq_dtheta_right(s.q)
-    Gi = np.linalg.pinv(G)
-    P6 = Gi @ s.P[:7, :7] @ Gi.T
-    d = rng.multivariate_normal(np.zeros(6), 0.5 * (P6 + P6.T))
-    R_true, r_true = quat_to_rotation(quat_multiply(s.q, rotvec_to_quat(d[:3]))), s.r + d[3:]
+    r_true, R_true = draw_camera(s, rng)
     Y_true = Y + rng.normal(0, sig_y, Y.shape)
     ks = np.arange(m)
     pred = predict(s, ks, CAM)
@@ -200,3 +205,45 @@ def test_no_match_and_one_match():
     update(ref, ks[4:5], z[4:5], CAM, 1.0)
     st.assert_close(s.x, ref.x, 1e-12)
     st.assert_close(s.P, ref.P, 1e-10)
+
+
+def two_camera_scene(seed: int, n_a: int = 12, n_b: int = 18):
+    """Matches of two self-consistent groups: ``n_a`` at the true camera's projections and
+    ``n_b`` (more) at those of another camera drawn from the same prior, as a cluster of new
+    features whose depths are still guesses can agree on a wrong motion. Returns the state, ks,
+    z, predictions, ellipses, group A's mask and the median gap between the groups' pixels."""
+    s, ks, z, pred, S_prior, _, _ = scene(seed, m=n_a + n_b, outlier_fraction=0.0, noise_px=0.2)
+    rng = np.random.default_rng(1000 + seed)
+    r_b, R_b = draw_camera(s, rng)
+    Y = np.array([s.feature(k) for k in ks])
+    a = np.zeros(len(ks), bool)
+    a[rng.choice(len(ks), n_a, replace=False)] = True
+    z_b = st.pixels(CAM, R_b, r_b, Y) + rng.normal(0, 0.2, (len(ks), 2))
+    gap = float(np.median(np.linalg.norm(z_b - z, axis=1)))
+    z = np.where(a[:, None], z, z_b)
+    return s, ks, z, pred, S_prior, a, gap
+
+
+def test_votes_choose_the_hypothesis_reliable_features_support():
+    """A larger group of matches agreeing on a wrong camera, made by features that have failed
+    most of their searches (each vote 0.25), against fewer from established features (vote 1):
+    unweighted, the larger group wins; weighted by the features' records, the established one.
+    A vote that is ignored, or read the wrong way round, fails."""
+    tried = flipped = 0
+    for seed in range(40):
+        s, ks, z, pred, S_prior, a, gap = two_camera_scene(seed)
+        inside = [np.linalg.solve(S_prior[i], z[i] - pred.uv[i]) @ (z[i] - pred.uv[i]) < 9 for i in range(len(ks))]
+        if gap < 10.0 or not all(inside):
+            continue                       # the two groups must be apart and both searchable
+        tried += 1
+        plain = one_point_ransac(s.copy(), ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, len(ks), 1 - 1e-12,
+                                 RESCUE_99, np.random.default_rng(seed))
+        votes = np.where(a, 1.0, 0.25)
+        # Every match tried as a hypothesis (the adaptive count could stop before drawing one of the
+        # smaller group: that is the sampling's chance, not the vote's).
+        weighted = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, len(ks), 1 - 1e-12,
+                                    RESCUE_99, np.random.default_rng(seed), votes=votes)
+        assert np.array_equal(weighted.used, a), (seed, gap)
+        flipped += np.array_equal(plain.used, ~a)
+    print(f"\ntwo groups apart in {tried} scenes; unweighted, the larger wrong group won in {flipped}")
+    assert tried >= 8 and flipped >= tried // 2
