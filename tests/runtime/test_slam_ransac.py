@@ -247,3 +247,18 @@ def test_votes_choose_the_hypothesis_reliable_features_support():
         flipped += np.array_equal(plain.used, ~a)
     print(f"\ntwo groups apart in {tried} scenes; unweighted, the larger wrong group won in {flipped}")
     assert tried >= 8 and flipped >= tried // 2
+
+
+def test_the_tracker_votes_by_each_features_record():
+    """The tracker's votes (system._Track._votes): inlier matches + 1 over searches + 2, so a
+    feature at its first search votes a third and one matched in 60 of 60 nearly 1, and the
+    votes follow the features asked for, in their order."""
+    from runtime.slam.system import _Track
+    from runtime.slam.templates import MapFeature
+
+    track = _Track.__new__(_Track)
+    records = [(1, 0), (60, 60), (10, 5), (4, 1)]
+    track.features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
+                      for i, (a, s) in enumerate(records)]
+    np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
+    np.testing.assert_allclose(track._votes(np.array([3, 1])), [1 / 3, 61 / 62])
