@@ -280,10 +280,10 @@ class _Track:
         visible = int(len(sel))
         idx = np.flatnonzero(searchable)
         if len(idx) > s.measure_max:
-            # The most reliable first (inlier matches over searches, with a prior of one in two),
-            # the most uncertain among equals, spread over the image.
+            # The most reliable first (MapFeature.reliability), the most uncertain among equals,
+            # spread over the image.
             feats = [self.features[k] for k in pred.ks[idx]]
-            reliability = np.array([(f.successes + 1) / (f.attempts + 2) for f in feats])
+            reliability = np.array([f.reliability for f in feats])
             priority = reliability + 1e-6 * np.log(np.maximum(np.linalg.det(S[idx]), 1e-12))
             idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
         pred = Prediction(pred.ks[idx], pred.uv[idx], pred.H_c[idx], pred.H_f[idx], pred.valid[idx])
@@ -358,9 +358,8 @@ class _Track:
         return visible
 
     def _votes(self, ks: np.ndarray) -> np.ndarray:
-        """Each match's vote for a 1-point hypothesis: the chance its feature's match is a true
-        one, from its record (inlier matches over searches, with a prior of one in two)."""
-        return np.array([(self.features[k].successes + 1) / (self.features[k].attempts + 2) for k in ks], float)
+        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature)."""
+        return np.array([self.features[k].reliability for k in ks], float)
 
     def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray) -> None:
         """A printed quadrilateral target found whole is located by its fitted sides (as at the

@@ -46,6 +46,12 @@ class MapFeature:
     last_seen: int = -1
     nis: list = field(default_factory=list)   # normalised innovations of its latest inlier matches
 
+    @property
+    def reliability(self) -> float:
+        """The chance that its matches are true ones, from its record: inlier matches over
+        searches, with a prior of one in two ((successes + 1) / (attempts + 2))."""
+        return (self.successes + 1) / (self.attempts + 2)
+
     def first_view_rays(self, cam: CameraIntrinsics) -> np.ndarray:
         """(5, 3) world rays of the first view's template corners and centre (cached)."""
         if self.rays0 is None:
