@@ -38,7 +38,7 @@ def search_at(img: np.ndarray, uv_true, shift, sigma_px: float):
                            borderMode=cv2.BORDER_REFLECT)
     x_v = np.r_[np.zeros(3), 1.0, np.zeros(9)]
     z, _, found, z2 = match_features(moved, [f], np.zeros(1, bool), np.zeros((1, 3)), x_v, cam,
-                                 np.array([uv_true], float), np.array([np.eye(2) * sigma_px**2]), 0.25, 1e6)
+                                     np.array([uv_true], float), np.array([np.eye(2) * sigma_px**2]), 0.25, 1e6)
     return z[0], bool(found[0]), z2[0]
 
 

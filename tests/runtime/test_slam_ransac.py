@@ -6,7 +6,6 @@ hypotheses, and leave the state updated with the inliers' information only."""
 from __future__ import annotations
 
 import math
-
 from types import SimpleNamespace
 
 import numpy as np
