@@ -110,7 +110,6 @@ class MapSettings:
     view_noise_scale: float = 1.5        # (angle, range ratio) from its first view
     margin_px: float = 12.0
     match_score: float = 0.25            # zero-mean normalised SSD 2 (1 - ZNCC): ZNCC >= 0.875
-    ambiguous_vote: float = 1e-3         # a match with a second passing place in its ellipse: joins, never outvotes
     max_search_area_px: int = 40_000     # an ellipse larger than this is not searched
     # -- lost track and re-localisation --
     lost_after: int = 10                 # frames with fewer than 3 inliers before "lost"

@@ -87,9 +87,7 @@ def _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2):
     S at uv (``ncc`` (nv, nu): OpenCV's TM_CCOEFF_NORMED of the template over ``roi``, the
     image from pixel (u0 - h, v0 - h), so that ncc[j, i] is the window centred on (u0 + i,
     v0 + j)), flat windows excluded, with a parabolic sub-pixel fit through the neighbours in
-    each direction when both are inside; and the least score among the positions more than
-    ``h`` px (half the template) from it in u or v, windows that share under half its area,
-    and where that is (whole pixels). Returns (u, v, score, u2, v2, second); scores 2 if none."""
+    each direction when both are inside. Returns (u, v, score); score 2 if none."""
     nv, nu = ncc.shape
     # The windows' sums and sums of squares from the region's own integral images (the region
     # is what matchTemplate read: a few thousand pixels, not the whole image).
@@ -127,18 +125,13 @@ def _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2):
             if s < best:
                 best, bi, bj = s, i, j
     if bi < 0:
-        return np.nan, np.nan, 2.0, np.nan, np.nan, 2.0
-    second, si, sj = 2.0, -1, -1
-    for j in range(nv):
-        for i in range(nu):
-            if (abs(i - bi) > h or abs(j - bj) > h) and grid[j, i] < second:
-                second, si, sj = grid[j, i], i, j
+        return np.nan, np.nan, 2.0
     su = sv = 0.0
     if 0 < bi < nu - 1 and np.isfinite(grid[bj, bi - 1]) and np.isfinite(grid[bj, bi + 1]):
         su = _parabola(grid[bj, bi - 1], best, grid[bj, bi + 1])
     if 0 < bj < nv - 1 and np.isfinite(grid[bj - 1, bi]) and np.isfinite(grid[bj + 1, bi]):
         sv = _parabola(grid[bj - 1, bi], best, grid[bj + 1, bi])
-    return u0 + bi + su, v0 + bj + sv, best, float(u0 + si), float(v0 + sj), second
+    return u0 + bi + su, v0 + bj + sv, best
 
 
 @compiled_kernel()
@@ -271,52 +264,44 @@ def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, 
 
 
 def _search(grey, tpl, uv, S, n2, max_area, max_score):
-    """(u, v, score, u2, v2) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none);
-    only a match scoring at most ``max_score`` is refined to sub-pixel (the others are not used).
-    (u2, v2): a second place in the ellipse, apart from the best (see :func:`_best_in_ellipse`),
-    that also scores at most ``max_score``, so that the template alone cannot tell the two apart
-    (a repeated pattern: print, shelving, tiles); NaN when there is none."""
+    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none); only a
+    match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
     a, c = S[0, 0], S[1, 1]
     if not (np.isfinite(S).all() and np.isfinite(uv).all() and a * c - S[0, 1] ** 2 > 0):
-        return np.nan, np.nan, 2.0, np.nan, np.nan
+        return np.nan, np.nan, 2.0
     hu, hv = math.sqrt(n2 * a), math.sqrt(n2 * c)
     if (2 * hu + 1) * (2 * hv + 1) > max_area:
-        return np.nan, np.nan, 2.0, np.nan, np.nan
+        return np.nan, np.nan, 2.0
     u0, u1 = max(math.floor(uv[0] - hu), h), min(math.ceil(uv[0] + hu), W - 1 - h)
     v0, v1 = max(math.floor(uv[1] - hv), h), min(math.ceil(uv[1] + hv), H - 1 - h)
     if u1 < u0 or v1 < v0:
-        return np.nan, np.nan, 2.0, np.nan, np.nan
+        return np.nan, np.nan, 2.0
     roi = grey[v0 - h:v1 + h + 1, u0 - h:u1 + h + 1]
     ncc = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
-    u, v, s, u2, v2, second = _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2)
+    u, v, s = _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2)
     if np.isfinite(u) and s <= max_score:
         ur, vr, ok = refine_affine_kernel(grey, tpl, u, v, 10, 0.005, AFFINE_DAMPING)
         if ok:
             u, v = ur, vr
-    if second > max_score:
-        u2 = v2 = np.nan
-    return u, v, s, u2, v2
+    return u, v, s
 
 
 def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarray,
                    Y: np.ndarray, x_v: np.ndarray, cam: CameraIntrinsics, uv: np.ndarray, S: np.ndarray,
                    max_score: float, max_area: float, n_sigma: float = 3.0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Match the map features ``features`` (m) whose predictions are ``uv`` (m, 2) px with
     innovation covariances ``S`` (m, 2, 2): each warped by its plane (through its point ``Y``
     (m, 3), normal ``MapFeature.normal``) where ``warp`` (m,) says so, retried unwarped when the
     warped template finds nothing. ``grey`` : (H, W) float32. Returns z (m, 2) (NaN: not found),
-    score (m,), found (m,), and z2 (m, 2): for a found match, a second place in its ellipse
-    that passes too (see :func:`_search`), NaN where there is none; which of the two is the
-    feature is for the map's consensus to say."""
+    score (m,), found (m,)."""
     m = len(features)
     z = np.full((m, 2), np.nan)
     score = np.full(m, 2.0)
-    z2 = np.full((m, 2), np.nan)
     if m == 0:
-        return z, score, np.zeros(0, bool), z2
+        return z, score, np.zeros(0, bool)
     t = features[0].template.shape[0]
     ph = max((f.patch.shape[0] for f in features if f.patch is not None), default=t)
     templates = np.empty((m, t, t), np.float32)
@@ -339,10 +324,9 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
                                np.ascontiguousarray(x_v[:3], float), quat_to_rotation(x_v[3:7]), model, lens)
     n2 = n_sigma * n_sigma
     for i in range(m):
-        u, v, s, u2, v2 = _search(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
+        u, v, s = _search(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
         if s > max_score and warped[i]:
-            u, v, s, u2, v2 = _search(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
-        z[i], score[i], z2[i] = (u, v), s, (u2, v2)
+            u, v, s = _search(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
+        z[i], score[i] = (u, v), s
     found = score <= max_score
-    z2[~found] = np.nan
-    return z, score, found, z2
+    return z, score, found

@@ -313,8 +313,8 @@ class _Track:
         feats = [self.features[k] for k in pred.ks]
         Y = self.world_points()[pred.ks] if m else np.zeros((0, 3))
         warp = np.array([slam.warped(f) for f in feats], bool)
-        z, _, found, z2 = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
-                                         s.match_score, s.max_search_area_px)
+        z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
+                                     s.match_score, s.max_search_area_px)
         z[~found] = np.nan
         if s.known_edges:
             self._known_by_edges(g, feats, z)
@@ -333,7 +333,7 @@ class _Track:
         rng = np.random.default_rng((slam.seed, frame))
         res = one_point_ransac(self.state, sub.ks, z[fi], cam, slam.cfg.sigma_pixel**2, sub, S[fi],
                                s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
-                               r_scale[fi], votes=self._votes(sub.ks, np.isfinite(z2[fi]).all(axis=1)))
+                               r_scale[fi], votes=self._votes(sub.ks))
         for j, k in enumerate(sub.ks):
             if res.used[j]:
                 self.features[k].successes += 1
@@ -357,12 +357,9 @@ class _Track:
         self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
         return visible
 
-    def _votes(self, ks: np.ndarray, ambiguous: np.ndarray) -> np.ndarray:
-        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature),
-        times ``ambiguous_vote`` where a second place in its ellipse matched as well (a repeated
-        pattern, whose copies shifted by one period agree on a wrong motion)."""
-        r = np.array([self.features[k].reliability for k in ks], float)
-        return r * np.where(ambiguous, self.slam.settings.ambiguous_vote, 1.0)
+    def _votes(self, ks: np.ndarray) -> np.ndarray:
+        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature)."""
+        return np.array([self.features[k].reliability for k in ks], float)
 
     def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray) -> None:
         """A printed quadrilateral target found whole is located by its fitted sides (as at the

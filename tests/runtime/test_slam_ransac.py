@@ -6,7 +6,6 @@ hypotheses, and leave the state updated with the inliers' information only."""
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -258,13 +257,8 @@ def test_the_tracker_votes_by_each_features_record():
     from runtime.slam.templates import MapFeature
 
     track = _Track.__new__(_Track)
-    track.slam = SimpleNamespace(settings=S)
     records = [(1, 0), (60, 60), (10, 5), (4, 1)]
     track.features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
                       for i, (a, s) in enumerate(records)]
-    plain = np.zeros(4, bool)
-    np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3]), plain), [1 / 3, 61 / 62, 0.5, 1 / 3])
-    np.testing.assert_allclose(track._votes(np.array([3, 1]), plain[:2]), [1 / 3, 61 / 62])
-    # A match whose ellipse held a second matching place votes less by MapSettings.ambiguous_vote.
-    a = S.ambiguous_vote
-    np.testing.assert_allclose(track._votes(np.array([3, 1]), np.array([False, True])), [1 / 3, a * 61 / 62])
+    np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
+    np.testing.assert_allclose(track._votes(np.array([3, 1])), [1 / 3, 61 / 62])
