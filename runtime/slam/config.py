@@ -79,6 +79,9 @@ class MapSettings:
     rho0: float = 1.0                    # initial inverse depth, 1/m
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
     linearity_threshold: float = 0.1     # convert to a point below this linearity index
+    # -- a natural feature's persistent residual (MapFeature.drift) --
+    drift_memory: float = 0.1            # the newest residual's weight in its exponential mean
+    drift_gain: float = 4.0              # variance x (1 + gain |drift|^2 / sigma_pixel^2); 0: off
     # -- particles (the paper's factored sampling) --
     particles: int = 100
     depth_near_m: float = 0.5

@@ -269,6 +269,9 @@ class _Track:
         pred = predict(st, ks, cam)
         ok = pred.valid & in_image(cam, np.nan_to_num(pred.uv, nan=-1e9), margin=s.margin_px)
         view_ok, r_scale = self._views(self.world_points())
+        if s.drift_gain > 0:
+            sig2 = self.slam.cfg.sigma_pixel ** 2
+            r_scale = r_scale * np.array([f.drift_variance_scale(s.drift_gain, sig2) for f in self.features])
         ok &= view_ok
         sel = np.flatnonzero(ok)
         pred = Prediction(pred.ks[sel], pred.uv[sel], pred.H_c[sel], pred.H_f[sel], pred.valid[sel])
@@ -339,6 +342,12 @@ class _Track:
                 self.features[k].successes += 1
                 self.features[k].last_seen = frame
         self.last.used[fi] = res.used
+        if s.drift_gain > 0 and res.used.any():
+            ku = sub.ks[res.used]
+            residual = z[fi][res.used] - predict_uv(self.state, ku, cam)
+            for k, r in zip(ku, residual):
+                if not self.features[k].known and np.isfinite(r).all():
+                    self.features[k].note_residual(r, s.drift_memory)
         st.matched = res.n_inliers
         st.rescued = int(res.rescued.sum())
         st.outliers = res.n_outliers

@@ -28,6 +28,8 @@ class MapFeature:
     first view's larger patch (warping), uv0 : its centre pixel, R0 : (3, 3) the first view's
     camera-to-world rotation, normal : (3,) the patch's plane normal (world), normal_from_map :
     fitted to map neighbours. rays0 : (4, 3) cached world rays of the patch's corners.
+    drift : (2,) px, the exponential mean of its residuals after each update, started by its
+    first (:meth:`note_residual`); None before any.
     """
 
     id: int
@@ -45,12 +47,27 @@ class MapFeature:
     rays0: np.ndarray | None = None
     last_seen: int = -1
     nis: list = field(default_factory=list)   # normalised innovations of its latest inlier matches
+    drift: np.ndarray | None = None
 
     @property
     def reliability(self) -> float:
         """The chance that its matches are true ones, from its record: inlier matches over
         searches, with a prior of one in two ((successes + 1) / (attempts + 2))."""
         return (self.successes + 1) / (self.attempts + 2)
+
+    def note_residual(self, r: np.ndarray, memory: float) -> None:
+        """Fold the residual ``r`` (2,) px, its match less its projection after the frame's
+        update, into :attr:`drift` with weight ``memory`` (0..1) for the newest."""
+        r = np.asarray(r, float)
+        self.drift = r.copy() if self.drift is None else (1.0 - memory) * self.drift + memory * r
+
+    def drift_variance_scale(self, gain: float, sigma2: float) -> float:
+        """How much its measurement variance grows for a persistent residual:
+        ``1 + gain |drift|^2 / sigma2`` (``sigma2`` px^2, the features' pixel variance). A match
+        whose errors are white averages to no drift; one that slides (an occluding contour, a
+        template that no longer looks like its first view) keeps its residual's sign and is
+        trusted less, where the filter would otherwise take correlated errors as independent."""
+        return 1.0 if self.drift is None else 1.0 + gain * float(self.drift @ self.drift) / sigma2
 
     def first_view_rays(self, cam: CameraIntrinsics) -> np.ndarray:
         """(5, 3) world rays of the first view's template corners and centre (cached)."""
