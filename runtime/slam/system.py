@@ -195,7 +195,7 @@ class _Track:
             # Lost: the map is frozen; the pose is sought again by whole-image matches
             # (relocalise.py) and by the active search in the grown ellipses; either must be
             # confirmed by the active search's inliers, else the frame leaves no trace.
-            counts = [(f.attempts, f.successes) for f in self.features]
+            counts = [(f.attempts, f.successes, f.drift) for f in self.features]
             saved = (self.state.x.copy(), self.state.P.copy())
             every = 1 if not self.localised else s.reloc_every
             if (self.low_matches - s.lost_after) % every == 0:
@@ -206,8 +206,8 @@ class _Track:
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
                 self.state.x, self.state.P = saved
-                for f, (a, b) in zip(self.features, counts):
-                    f.attempts, f.successes = a, b
+                for f, (a, b, d) in zip(self.features, counts):
+                    f.attempts, f.successes, f.drift = a, b, d
                 st.relocalised = False
                 st.matched = st.rescued = 0
                 self.low_matches += 1
