@@ -37,6 +37,8 @@ class SlamConfig:
         m/s^2/sqrt(s).
     gyro_bias_sigma0, accel_bias_sigma0 : the biases' prior standard deviations before any
         still period (a MEMS part's offsets after factory trim), rad/s and m/s^2.
+    time_offset_sigma0, time_offset_walk : the IMU's clock offset against the camera's (stamps
+        taken by a host on arrival): its prior standard deviation, s, and random walk, s/sqrt(s).
     psd_rel_tol : the covariance guard's tolerance for negative eigenvalues (relative).
     psd_check_every : frames between full positive-semi-definiteness checks (a Cholesky of P);
         finiteness, symmetry and non-negative variances are checked at every step.
@@ -53,6 +55,8 @@ class SlamConfig:
     accel_bias_walk: float = 2e-3
     gyro_bias_sigma0: float = 0.01
     accel_bias_sigma0: float = 0.1
+    time_offset_sigma0: float = 0.005
+    time_offset_walk: float = 1e-4
     psd_rel_tol: float = 1e-9
     psd_check_every: int = 10
 
@@ -144,6 +148,7 @@ class MapSettings:
     # -- IMU --
     use_imu: bool = True
     imu_biases: bool = True              # bias states in the filter (the camera block of 19)
+    imu_time_offset: bool = True         # and the IMU's clock offset (20), with the biases only
     still_gyro_rad_s: float = 0.02       # an IMU stretch is still below this RMS rate spread
     still_min_s: float = 0.3
     imu_max_gap_s: float = 0.05          # a longer gap between samples falls back to vision only

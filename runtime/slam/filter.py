@@ -31,7 +31,7 @@ from .kernels import compiled_kernel
 from .measurement import Prediction, init_point_from_depth, predict
 from .motion import apply_quaternion_jacobian
 from .quaternion import normalise_quaternion_jacobian
-from .state import POSE_DIM, Q_SLICE, SlamNumericalError, State, check_covariance, check_mean, mirror_upper
+from .state import POSE_DIM, Q_SLICE, TD_INDEX, SlamNumericalError, State, check_covariance, check_mean, mirror_upper
 
 __all__ = ["FeatureNotMeasurable", "UpdateResult", "FrameUpdate", "innovation_covariances", "update", "add_inverse_depth_feature",
            "add_point_feature", "convert_to_point"]
@@ -122,8 +122,19 @@ def innovation_covariances(state: State, pred: Prediction, R_pix, r_scale=None) 
     R = pixel_covariance(R_pix)
     S = _innovation_kernel(state.P, state.kinds, state.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f, R,
                            _scales(r_scale, len(pred.ks)))
+    if pred.H_t is not None and len(pred.ks):
+        c = _h_times_kernel(np.ascontiguousarray(state.P[:, TD_INDEX:TD_INDEX + 1]), state.kinds, state.starts,
+                            FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
+        _add_time_offset_terms(S, pred.H_t, c.reshape(-1, 2), float(state.P[TD_INDEX, TD_INDEX]))
     S[~pred.valid] = np.nan
     return S
+
+
+def _add_time_offset_terms(S: np.ndarray, H_t: np.ndarray, c: np.ndarray, P_tt: float) -> None:
+    """S_i += u c^T + c u^T + P_tt u u^T in place: the clock offset's column of H_i (``u`` =
+    H_t[i], (2,)), with ``c`` (m, 2) the rest of H_i times P's clock-offset column."""
+    uc = H_t[:, :, None] * c[:, None, :]
+    S += uc + np.swapaxes(uc, 1, 2) + P_tt * H_t[:, :, None] * H_t[:, None, :]
 
 
 @compiled_kernel()
@@ -205,10 +216,18 @@ class FrameUpdate:
         st = self.state
         S = _innovation_kernel(st.P, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f, self.R,
                                _scales(r_scale, len(pred.ks)))
-        if self._U.shape[1] and len(pred.ks):
-            HU = _h_times_kernel(self._U, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
+        U = self._U
+        if pred.H_t is not None and len(pred.ks):
+            # The clock offset's column of P = P0 - U U^T, and H's other columns times it.
+            p_t = st.P[:, TD_INDEX] - U @ U[TD_INDEX] if U.shape[1] else st.P[:, TD_INDEX].copy()
+            c = _h_times_kernel(np.ascontiguousarray(p_t[:, None]), st.kinds, st.starts, FEATURE_DIMS, pred.ks,
+                                pred.H_c, pred.H_f)
+        if U.shape[1] and len(pred.ks):
+            HU = _h_times_kernel(U, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
             HU = HU.reshape(len(pred.ks), 2, -1)
             S -= HU @ np.swapaxes(HU, 1, 2)
+        if pred.H_t is not None and len(pred.ks):
+            _add_time_offset_terms(S, pred.H_t, c.reshape(-1, 2), float(p_t[TD_INDEX]))
         S[~pred.valid] = np.nan
         return S
 
@@ -234,9 +253,16 @@ class FrameUpdate:
                                        f"behind the camera plane, or outside the lens model's domain)")
         r = self._U.shape[1]
         PHt, HU = _pht_kernel(st.P, self._U, r, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c, pred.H_f)
+        u = None if pred.H_t is None else pred.H_t.reshape(-1)       # H's clock-offset column (2m,)
+        if u is not None:
+            PHt += np.outer(st.P[:, TD_INDEX], u)
+            if r:
+                HU += np.outer(u, self._U[TD_INDEX])
         if r:
             PHt -= self._U @ HU.T
         S = _h_times_kernel(PHt, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c, pred.H_f)
+        if u is not None:
+            S += u[:, None] * PHt[TD_INDEX][None, :]
         S = 0.5 * (S + S.T) + np.kron(np.diag(_scales(r_scale, m)), self.R)
         try:
             if not np.isfinite(S).all():

@@ -18,19 +18,26 @@ from kinematics.camera import CameraIntrinsics, lens_kernel_args, unproject_jaco
 from .features import INVERSE_DEPTH, MAX_FEATURE_DIM, POINT
 from .features import inverse_depth, point
 from .kernels import compiled_kernel
-from .quaternion import quat_to_rotation, rotation_derivatives, rotation_derivatives_kernel, rotation_kernel
-from .state import POSE_DIM, Q_SLICE, R_SLICE, State
+from .quaternion import quat_multiply, quat_to_rotation, rotation_derivatives, rotation_derivatives_kernel, rotation_kernel
+from .state import POSE_DIM, Q_SLICE, R_SLICE, TD_INDEX, V_SLICE, W_SLICE, State
 
 
 class Prediction(NamedTuple):
     """Predicted measurements of features ``ks``: uv (m, 2) px, H_c (m, 2, 7) = d(uv)/d(r, q),
-    H_f (m, 2, 6) = d(uv)/d(feature), its first ``dim`` columns used, valid (m,) bool."""
+    H_f (m, 2, 6) = d(uv)/d(feature), its first ``dim`` columns used, valid (m,) bool, and
+    with the IMU's clock offset in the state H_t (m, 2) = d(uv)/d(t_d) px/s (else None)."""
 
     ks: np.ndarray
     uv: np.ndarray
     H_c: np.ndarray
     H_f: np.ndarray
     valid: np.ndarray
+    H_t: np.ndarray | None = None
+
+    def take(self, sel) -> "Prediction":
+        """The predictions ``sel`` (indices or a mask)."""
+        return Prediction(self.ks[sel], self.uv[sel], self.H_c[sel], self.H_f[sel], self.valid[sel],
+                          None if self.H_t is None else self.H_t[sel])
 
 
 @compiled_kernel(point.h_kernel, inverse_depth.h_kernel)
@@ -77,18 +84,35 @@ def uv_many_kernel(x, kinds, starts, anchors, ks, model, lens):
     return uv
 
 
+def image_velocity(x, H_c: np.ndarray) -> np.ndarray:
+    """(m, 2) px/s: how fast the predicted pixels move with the camera's velocity and rate in
+    ``x`` (``d uv/dt = d uv/dr v + d uv/dq q_dot``, ``q_dot = q (0, w) / 2``), from the pose
+    Jacobians ``H_c`` (m, 2, 7)."""
+    q_dot = 0.5 * quat_multiply(x[Q_SLICE], np.r_[0.0, x[W_SLICE]])
+    return H_c[:, :, :3] @ x[V_SLICE] + H_c[:, :, 3:7] @ q_dot
+
+
 def predict(state: State, ks, cam: CameraIntrinsics, x=None) -> Prediction:
     """Predicted measurements of the features ``ks`` of ``state`` (at ``x`` if given, e.g. a
-    RANSAC hypothesis or an updated mean with the same layout)."""
+    RANSAC hypothesis or an updated mean with the same layout).
+
+    With the IMU's clock offset ``t_d`` in the state, the camera block runs on the IMU's
+    stamps, ``t_d`` behind the image's time, so a feature is predicted where it will be
+    ``t_d`` later: ``uv + t_d d uv/dt`` (first order; ``H_t = d uv/dt``)."""
     ks = np.ascontiguousarray(np.asarray(ks, dtype=np.intp).reshape(-1))
     model, lens = lens_kernel_args(cam)
     xs = state.x if x is None else np.ascontiguousarray(x, dtype=float)
     uv, H_c, H_f, valid = h_many_kernel(xs, state.kinds, state.starts, state.anchors, ks, model, lens)
-    return Prediction(ks, uv, H_c, H_f, valid)
+    if not state.has_time_offset:
+        return Prediction(ks, uv, H_c, H_f, valid)
+    H_t = image_velocity(xs, H_c)
+    return Prediction(ks, uv + xs[TD_INDEX] * H_t, H_c, H_f, valid, H_t)
 
 
 def predict_uv(state: State, ks, cam: CameraIntrinsics, x=None) -> np.ndarray:
     """(m, 2) predicted pixels of features ``ks`` (NaN: no image)."""
+    if state.has_time_offset:
+        return predict(state, ks, cam, x).uv
     ks = np.ascontiguousarray(np.asarray(ks, dtype=np.intp).reshape(-1))
     model, lens = lens_kernel_args(cam)
     xs = state.x if x is None else np.ascontiguousarray(x, dtype=float)

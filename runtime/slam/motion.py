@@ -24,7 +24,7 @@ from .config import SlamConfig
 from .kernels import compiled_kernel
 from .quaternion import (normalise_quaternion_jacobian, quat_left_kernel, quat_right_kernel,
                          rotvec_to_quat_jacobian_kernel)
-from .state import BA_SLICE, BG_SLICE, NOISE_DIM, Q_SLICE, SlamNumericalError, State, check_mean
+from .state import BA_SLICE, BG_SLICE, NOISE_DIM, Q_SLICE, TD_INDEX, SlamNumericalError, State, check_mean
 
 
 def _check_dt(dt) -> float:
@@ -92,6 +92,8 @@ def bias_walk(P_vv: np.ndarray, dt: float, cfg: SlamConfig) -> None:
         for sl, s in ((BG_SLICE, cfg.gyro_bias_walk), (BA_SLICE, cfg.accel_bias_walk)):
             idx = np.arange(sl.start, sl.stop)
             P_vv[idx, idx] += s * s * dt
+    if len(P_vv) > TD_INDEX:
+        P_vv[TD_INDEX, TD_INDEX] += cfg.time_offset_walk**2 * dt
 
 
 def process_noise(x_v, dt: float, cfg: SlamConfig, gain: float = 1.0) -> np.ndarray:

@@ -163,7 +163,7 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
     fu = FrameUpdate(state, cam, R_pix)
     if low.any():
         sel = np.flatnonzero(low)
-        sub = Prediction(ks[sel], pred.uv[sel], pred.H_c[sel], pred.H_f[sel], pred.valid[sel])
+        sub = pred.take(sel)
         try:
             fu.update(ks[sel], z[sel], sub, r_scale[sel])
             used[sel] = True
@@ -181,7 +181,7 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
         good = ok & (d2 < rescue_chi2)
         if good.any():
             sel = rest[good]
-            sub = Prediction(ks[sel], p2.uv[good], p2.H_c[good], p2.H_f[good], p2.valid[good])
+            sub = p2.take(good)
             try:
                 fu.update(ks[sel], z[sel], sub, r_scale[sel])
                 rescued[sel] = True

@@ -51,6 +51,7 @@ from .kernels import compiled_kernel
 
 CAMERA_DIM = 13          #: the MonoSLAM camera block
 CAMERA_DIM_BIASED = 19   #: with gyro and accelerometer bias states
+CAMERA_DIM_TIMED = 20    #: and the IMU's clock offset t_d (s)
 POSE_DIM = 7             #: r and q: the part of the camera block a measurement sees
 NOISE_DIM = 6            #: the constant-velocity impulse n = (V, Omega) = dt (a, alpha)
 
@@ -60,9 +61,10 @@ V_SLICE = slice(7, 10)
 W_SLICE = slice(10, 13)
 BG_SLICE = slice(13, 16)
 BA_SLICE = slice(16, 19)
+TD_INDEX = 19            #: t_d: an IMU sample stamped t was taken at camera time t - t_d
 
 _CAMERA_NAMES = (("r", R_SLICE), ("q", Q_SLICE), ("v", V_SLICE), ("w", W_SLICE), ("b_g", BG_SLICE),
-                 ("b_a", BA_SLICE))
+                 ("b_a", BA_SLICE), ("t_d", slice(TD_INDEX, TD_INDEX + 1)))
 
 
 class SlamNumericalError(FloatingPointError):
@@ -72,9 +74,9 @@ class SlamNumericalError(FloatingPointError):
 
 
 def _check_camera_dim(cam_dim: int) -> int:
-    if cam_dim not in (CAMERA_DIM, CAMERA_DIM_BIASED):
-        raise ValueError(f"the camera block has {CAMERA_DIM} numbers, or {CAMERA_DIM_BIASED} with IMU biases; "
-                         f"got {cam_dim}")
+    if cam_dim not in (CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED):
+        raise ValueError(f"the camera block has {CAMERA_DIM} numbers, {CAMERA_DIM_BIASED} with IMU biases or "
+                         f"{CAMERA_DIM_TIMED} with the IMU's clock offset as well; got {cam_dim}")
     return int(cam_dim)
 
 
@@ -216,7 +218,7 @@ def check_covariance(P: np.ndarray, where: str = "", psd_rel_tol: float = 1e-9, 
 
 @dataclass
 class State:
-    """Mean ``x`` (n,), covariance ``P`` (n, n), and the layout: ``cam_dim`` (13 or 19), each
+    """Mean ``x`` (n,), covariance ``P`` (n, n), and the layout: ``cam_dim`` (13, 19 or 20), each
     feature's ``kinds`` (N,) and ``anchors`` (N, 3, 3); ``starts`` (N,) is derived.
 
     The arrays are owned (copied on construction); the filter's steps update ``P`` in place or
@@ -252,7 +254,7 @@ class State:
 
     @classmethod
     def from_camera(cls, x_v, P_vv) -> "State":
-        """A state with no features: camera block (13 or 19,) and its covariance."""
+        """A state with no features: camera block (13, 19 or 20,) and its covariance."""
         x_v = np.asarray(x_v, dtype=float).reshape(-1)
         return cls(x_v, P_vv, cam_dim=len(x_v))
 
@@ -270,7 +272,16 @@ class State:
 
     @property
     def has_biases(self) -> bool:
-        return self.cam_dim == CAMERA_DIM_BIASED
+        return self.cam_dim >= CAMERA_DIM_BIASED
+
+    @property
+    def has_time_offset(self) -> bool:
+        return self.cam_dim == CAMERA_DIM_TIMED
+
+    @property
+    def t_d(self) -> float:
+        """The IMU's clock offset, s (0 without its state)."""
+        return float(self.x[TD_INDEX]) if self.has_time_offset else 0.0
 
     @property
     def x_v(self) -> np.ndarray:

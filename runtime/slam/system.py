@@ -55,7 +55,8 @@ from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, refine_by_edges, start_hypotheses
-from .state import BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, POSE_DIM, SlamNumericalError, State, check_covariance
+from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX,
+                    SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
 __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
@@ -274,7 +275,7 @@ class _Track:
             r_scale = r_scale * np.array([f.drift_variance_scale(s.drift_gain, sig2) for f in self.features])
         ok &= view_ok
         sel = np.flatnonzero(ok)
-        pred = Prediction(pred.ks[sel], pred.uv[sel], pred.H_c[sel], pred.H_f[sel], pred.valid[sel])
+        pred = pred.take(sel)
         self.in_view_ids = {self.features[k].id for k in pred.ks}
         r_scale = r_scale[sel]
         S = innovation_covariances(st, pred, self.slam.cfg.sigma_pixel**2, r_scale)
@@ -289,7 +290,7 @@ class _Track:
             reliability = np.array([f.reliability for f in feats])
             priority = reliability + 1e-6 * np.log(np.maximum(np.linalg.det(S[idx]), 1e-12))
             idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
-        pred = Prediction(pred.ks[idx], pred.uv[idx], pred.H_c[idx], pred.H_f[idx], pred.valid[idx])
+        pred = pred.take(idx)
         return pred, S[idx], r_scale[idx], visible
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
@@ -332,7 +333,7 @@ class _Track:
             self.score -= 0.5 * s.ambiguity_gate_chi2 * m
             return visible
         fi = np.flatnonzero(found)
-        sub = Prediction(pred.ks[fi], pred.uv[fi], pred.H_c[fi], pred.H_f[fi], pred.valid[fi])
+        sub = pred.take(fi)
         rng = np.random.default_rng((slam.seed, frame))
         res = one_point_ransac(self.state, sub.ks, z[fi], cam, slam.cfg.sigma_pixel**2, sub, S[fi],
                                s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
@@ -596,7 +597,9 @@ class MonoSLAM:
         self.settings = settings
         self.seed = seed
         self.use_imu = bool(imu) and settings.use_imu
-        self.cam_dim = CAMERA_DIM_BIASED if (self.use_imu and settings.imu_biases) else CAMERA_DIM
+        self.cam_dim = CAMERA_DIM
+        if self.use_imu and settings.imu_biases:
+            self.cam_dim = CAMERA_DIM_TIMED if settings.imu_time_offset else CAMERA_DIM_BIASED
         # Templates and distances scale with the image (15 px at 640 px wide).
         t = int(round(settings.template_px * camera.width / 640.0))
         self.template_px = max(t + (1 - t % 2), 7)
@@ -709,9 +712,11 @@ class MonoSLAM:
     # -------------------------------------------------------------- start-up
     def _camera_state(self, hyp: PoseHypothesis, t: float) -> State:
         x_v, P = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, self.cam_dim)
-        if self.cam_dim == CAMERA_DIM_BIASED:
+        if self.cam_dim >= CAMERA_DIM_BIASED:
             for sl, s0 in ((BG_SLICE, self.cfg.gyro_bias_sigma0), (BA_SLICE, self.cfg.accel_bias_sigma0)):
                 P[sl, sl] = np.eye(3) * s0**2
+            if self.cam_dim == CAMERA_DIM_TIMED:
+                P[TD_INDEX, TD_INDEX] = self.cfg.time_offset_sigma0**2
             # A still stretch before the first frame gives the biases: the gyro's directly, the
             # accelerometer's through the start's attitude, correlated with it (as a new
             # feature is with the camera), so that refining the attitude refines it.

@@ -68,15 +68,18 @@ def orientation_covariance(P_qq, q) -> np.ndarray:
 # -- states ------------------------------------------------------------------------------------
 
 def random_camera(rng, w_scale: float = 1.0, cam_dim: int = CAMERA_DIM) -> np.ndarray:
-    """A camera block (13 or 19,): random pose, velocities, and (19) small biases."""
+    """A camera block (13, 19 or 20,): random pose, velocities, (19) small biases and (20) a
+    clock offset of a few ms."""
     x = np.concatenate([rng.normal(0, 1, 3), random_quat(rng), rng.normal(0, 0.5, 3), rng.normal(0, w_scale, 3)])
     if cam_dim > CAMERA_DIM:
         x = np.concatenate([x, rng.normal(0, 0.01, 3), rng.normal(0, 0.1, 3)])
+    if cam_dim > 19:
+        x = np.r_[x, rng.normal(0, 0.004)]
     return x
 
 
 def camera_covariance(q, sig_r, sig_theta, sig_v, sig_w, cam_dim: int = CAMERA_DIM, sig_bg: float = 0.01,
-                      sig_ba: float = 0.1) -> np.ndarray:
+                      sig_ba: float = 0.1, sig_td: float = 0.005) -> np.ndarray:
     """A camera block covariance with an orientation error theta (local, rad) mapped into the
     quaternion's tangent (so P has q's norm direction as its null direction, as in the filter)."""
     P = np.zeros((cam_dim, cam_dim))
@@ -88,6 +91,8 @@ def camera_covariance(q, sig_r, sig_theta, sig_v, sig_w, cam_dim: int = CAMERA_D
     if cam_dim > CAMERA_DIM:
         P[13:16, 13:16] = sig_bg**2 * np.eye(3)
         P[16:19, 16:19] = sig_ba**2 * np.eye(3)
+    if cam_dim > 19:
+        P[19, 19] = sig_td**2
     return P
 
 

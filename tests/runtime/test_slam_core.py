@@ -38,6 +38,7 @@ from runtime.slam.quaternion import (
 from runtime.slam.state import (
     CAMERA_DIM,
     CAMERA_DIM_BIASED,
+    CAMERA_DIM_TIMED,
     Q_SLICE,
     SlamNumericalError,
     State,
@@ -49,7 +50,7 @@ from runtime.slam.state import (
 DT = 1.0 / 30.0
 CFG = SlamConfig()
 CAMERAS = st.CAMERAS
-BOTH = [CAMERA_DIM, CAMERA_DIM_BIASED]
+BOTH = [CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED]   # every camera block
 
 
 # -- quaternions -------------------------------------------------------------------------------
@@ -127,7 +128,7 @@ def test_layout_of_a_mixed_state():
 
 def test_state_refuses_inconsistent_layouts():
     x = np.r_[0, 0, 0, 1.0, 0, 0, 0, np.zeros(6)]
-    with pytest.raises(ValueError, match="13 numbers, or 19"):
+    with pytest.raises(ValueError, match="13 numbers, 19 with IMU biases or 20"):
         State(np.r_[x, 0.0], np.eye(14), cam_dim=14)
     with pytest.raises(ValueError, match="has 16 numbers, got 15"):
         State(np.r_[x, 0, 0], np.eye(15), CAMERA_DIM, [POINT])
@@ -351,15 +352,17 @@ def test_motion_jacobians_F_and_G(w_scale, cam_dim):
 @pytest.mark.parametrize("cam_dim", BOTH)
 def test_process_noise_is_G_Pn_Gt_plus_the_bias_walks(cam_dim):
     rng = np.random.default_rng(11)
-    cfg = SlamConfig(sigma_a=2.0, sigma_alpha=3.0, gyro_bias_walk=1e-3, accel_bias_walk=2e-2)
+    cfg = SlamConfig(sigma_a=2.0, sigma_alpha=3.0, gyro_bias_walk=1e-3, accel_bias_walk=2e-2, time_offset_walk=3e-4)
     x_v = st.random_camera(rng, cam_dim=cam_dim)
     G = f_and_dfdx_dfdn(x_v, DT)[2]
     Pn = noise_covariance(DT, cfg)
     assert np.allclose(np.diag(Pn), [(2 * DT) ** 2] * 3 + [(3 * DT) ** 2] * 3)
     walks = np.zeros((cam_dim, cam_dim))
-    if cam_dim == CAMERA_DIM_BIASED:
+    if cam_dim >= CAMERA_DIM_BIASED:
         walks[13:16, 13:16] = np.eye(3) * 1e-6 * DT
         walks[16:19, 16:19] = np.eye(3) * 4e-4 * DT
+    if cam_dim == CAMERA_DIM_TIMED:
+        walks[19, 19] = 9e-8 * DT
     np.testing.assert_allclose(process_noise(x_v, DT, cfg), G @ Pn @ G.T + walks, rtol=1e-12, atol=1e-18)
 
 

@@ -25,6 +25,7 @@ from runtime.slam.state import (
     BG_SLICE,
     CAMERA_DIM,
     CAMERA_DIM_BIASED,
+    CAMERA_DIM_TIMED,
     Q_SLICE,
     R_SLICE,
     V_SLICE,
@@ -37,7 +38,7 @@ CFG = SlamConfig()
 
 # -- the step and its Jacobians ----------------------------------------------------------------
 
-@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
+@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED])
 @pytest.mark.parametrize("d", [0.0, 0.005, 0.03])
 def test_imu_step_jacobians(d, cam_dim):
     rng = np.random.default_rng(11)
@@ -50,8 +51,8 @@ def test_imu_step_jacobians(d, cam_dim):
         st.assert_jacobian(F, st.fd_jacobian(lambda a: imu_step_and_jacobians(a, omega, f, d)[0], x_v))
         u = np.r_[f, omega]
         st.assert_jacobian(G, st.fd_jacobian(lambda b: imu_step_and_jacobians(x_v, b[3:], b[:3], d)[0], u))
-        if cam_dim == CAMERA_DIM_BIASED:
-            assert np.array_equal(x_new[13:], x_v[13:])          # biases held
+        if cam_dim >= CAMERA_DIM_BIASED:
+            assert np.array_equal(x_new[13:], x_v[13:])          # biases (and the clock offset) held
             # A bias is an offset of the sample: the step with biases b equals the step without
             # bias states fed the corrected sample.
             x13, _, _ = imu_step_and_jacobians(x_v[:13], omega - x_v[BG_SLICE], f - x_v[BA_SLICE], d)
@@ -176,12 +177,15 @@ def test_prediction_covariance_is_the_product_of_the_intervals():
 
 # -- the bias states converge ------------------------------------------------------------------
 
-def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int = 210, fps: int = 30) -> State:
+def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int = 210, fps: int = 30,
+                        t_d: float | None = None) -> State:
     """A camera swaying and turning (about 0.5 rad, 0.2 m) in front of known points, its
     IMU with constant biases ``b_g``, ``b_a`` and white noise of the filter's own densities,
     integrated with the filter's own zero-order hold (so the IMU model is exact); the filter
     (bias states from zero with their configured prior) predicts through the samples and is
-    updated by the visible points' pixels (1 px) every frame. Returns the final state."""
+    updated by the visible points' pixels (1 px) every frame. With ``t_d`` (s) the IMU's
+    stamps run that far ahead of the camera's clock and the filter has the clock-offset state
+    (from zero, its configured prior). Returns the final state."""
     rng = np.random.default_rng(seed)
     cam = st.PINHOLE
     dt = 1.0 / rate_hz
@@ -207,21 +211,25 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
         x[Q_SLICE] /= np.linalg.norm(x[Q_SLICE])
         states.append(x)
     rows = np.array(rows)
+    if t_d is not None:
+        rows[:, 0] += t_d                  # a sample taken at camera time t is stamped t + t_d
     # Known points 2 to 4 m away, up to about 60 degrees around the first view's axis (+y).
     d = np.column_stack([rng.uniform(-1.7, 1.7, 150), np.ones(150), rng.uniform(-1.7, 1.7, 150)])
     Y = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(2.0, 4.0, (150, 1))
     cfg = CFG
-    x_v = np.r_[states[0][:13], np.zeros(6)]
+    cam_dim = CAMERA_DIM_BIASED if t_d is None else CAMERA_DIM_TIMED
+    k0 = 0 if t_d is None else 1           # a frame late, so that samples precede it whatever t_d
+    x_v = np.r_[states[k0 * per_frame][:13], np.zeros(cam_dim - 13)]
     x_v[:3] += rng.normal(0, 0.003, 3)
-    P_v = st.camera_covariance(x_v[Q_SLICE], 0.003, 1e-3, 0.01, 0.05, CAMERA_DIM_BIASED, cfg.gyro_bias_sigma0,
-                               cfg.accel_bias_sigma0)
+    P_v = st.camera_covariance(x_v[Q_SLICE], 0.003, 1e-3, 0.01, 0.05, cam_dim, cfg.gyro_bias_sigma0,
+                               cfg.accel_bias_sigma0, cfg.time_offset_sigma0)
     s = State.from_camera(x_v, P_v)
     sig_y = 0.001
     for y in Y:
         s.add_feature(POINT, y + rng.normal(0, sig_y, 3), sig_y**2 * np.eye(3), np.zeros((3, s.n)))
-    for k in range(1, n // per_frame + 1):
+    for k in range(k0 + 1, n // per_frame + 1):
         j0, j1 = (k - 1) * per_frame, k * per_frame
-        predict_imu(s, rows[j0:j1 + 1], t[j0], t[j1], cfg)
+        predict_imu(s, rows if t_d is not None else rows[j0:j1 + 1], t[j0], t[j1], cfg)
         xt = states[j1]
         uv = st.pixels(cam, quat_to_rotation(xt[Q_SLICE]), xt[:3], Y)
         seen = np.flatnonzero(in_image(cam, uv, margin=20.0))
@@ -248,6 +256,17 @@ def test_bias_states_converge_to_the_imus_biases(seed, b_g, b_a):
     # ... and clearly nearer the truth than the prior's zero.
     assert np.linalg.norm(e_g) < 0.25 * np.linalg.norm(b_g)
     assert np.linalg.norm(e_a) < 0.25 * np.linalg.norm(b_a)
+
+
+@pytest.mark.parametrize("seed, t_d", [(1, 0.006), (2, -0.004)])
+def test_the_clock_offset_state_converges_to_the_imus_offset(seed, t_d):
+    """The IMU's stamps a few ms off the camera's (a host stamping on arrival): the clock-offset
+    state, from zero with a 5 ms prior, ends within 3 sigma and 1 ms of the truth."""
+    s = simulate_biased_imu(seed, [0.004, -0.006, 0.003], [0.05, -0.04, 0.06], t_d=t_d)
+    sd = np.sqrt(s.P[19, 19])
+    print(f"\nclock offset {1000 * s.t_d:.2f} ms (true {1000 * t_d:.1f}, sd {1000 * sd:.2f})")
+    assert abs(s.t_d - t_d) < min(3 * sd, 0.001)
+    assert sd < 0.3 * CFG.time_offset_sigma0
 
 
 # -- ImuStream ---------------------------------------------------------------------------------

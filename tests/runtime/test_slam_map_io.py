@@ -23,7 +23,7 @@ from runtime.slam.config import MapSettings, SlamConfig
 from runtime.slam.features import INVERSE_DEPTH, POINT
 from runtime.slam.filter import convert_to_point
 from runtime.slam.map_io import MapFileError, load_map, save_map
-from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED
+from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED
 from runtime.slam.system import MonoSLAM
 from runtime.slam.templates import MapFeature
 
@@ -83,7 +83,7 @@ def test_save_then_load_round_trips_every_array_and_record(slam, tmp_path):
     assert load_map(save_map(tmp_path / "again.npz", slam)).y.tobytes() == saved.y.tobytes()
 
 
-@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
+@pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED])
 def test_a_loaded_map_makes_a_state_and_a_session_that_starts_lost(slam, tmp_path, cam_dim):
     saved = load_map(save_map(tmp_path / "m.npz", slam), CAM)
     cfg = SlamConfig()
@@ -94,8 +94,10 @@ def test_a_loaded_map_makes_a_state_and_a_session_that_starts_lost(slam, tmp_pat
     assert not s.P[:cam_dim, cam_dim:].any()                 # the camera knows nothing of the map
     np.testing.assert_allclose(s.r, saved.T_world_cam[:3, 3])
     assert np.sqrt(s.P[0, 0]) >= 0.5                          # too wide to search: it must re-localise
-    if cam_dim == CAMERA_DIM_BIASED:
+    if cam_dim >= CAMERA_DIM_BIASED:
         np.testing.assert_allclose(np.diag(s.P)[13:19], [cfg.gyro_bias_sigma0**2] * 3 + [cfg.accel_bias_sigma0**2] * 3)
+    if cam_dim == CAMERA_DIM_TIMED:
+        assert s.P[19, 19] == cfg.time_offset_sigma0**2 and s.t_d == 0.0
     session = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
     session.start_from_map(saved, 10.0)
     assert session.lost and not session.localised and np.isnan(session.T_world_cam()).all()

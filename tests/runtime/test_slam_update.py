@@ -22,7 +22,7 @@ from runtime.slam.filter import (
 )
 from runtime.slam.measurement import init_point_from_depth, predict
 from runtime.slam.quaternion import normalise_quaternion_jacobian, quat_to_rotation
-from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED, Q_SLICE, SlamNumericalError, State
+from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, Q_SLICE, TD_INDEX, SlamNumericalError, State
 from test_slam_core import mixed_state
 
 CAMERAS = st.CAMERAS
@@ -295,3 +295,102 @@ def test_frame_update_ellipses_of_no_features_after_a_batch():
     fu = FrameUpdate(s, cam, 1.0)
     fu.update([0, 1], true_matches(s, [0, 1], cam, rng))
     assert fu.innovation_covariances(fu.predict([])).shape == (0, 2, 2)
+
+
+# -- the IMU's clock offset in the state ----------------------------------------------------------
+
+def dense_H_timed(state: State, ks, cam, x=None) -> tuple[np.ndarray, np.ndarray]:
+    """h (2m,) and the filter's H (2m, n) for a state with the clock-offset entry: the pose and
+    feature columns, and t_d's column checked against central differences over t_d (the
+    prediction is linear in it). The terms of t_d times the image velocity's own derivatives
+    are left out of H (first order in t_d, as the filter leaves them)."""
+    x = state.x if x is None else x
+    pred = predict(state, ks, cam, x=x)
+    assert pred.valid.all() and pred.H_t is not None
+    H = np.zeros((2 * len(ks), state.n))
+    for i, k in enumerate(ks):
+        d = FEATURE_DIMS[state.kinds[k]]
+        H[2 * i:2 * i + 2, :7] = pred.H_c[i]
+        H[2 * i:2 * i + 2, state.starts[k]:state.starts[k] + d] = pred.H_f[i][:, :d]
+        H[2 * i:2 * i + 2, TD_INDEX] = pred.H_t[i]
+
+    def h_of_td(td):
+        xt = x.copy()
+        xt[TD_INDEX] = td[0]
+        return predict(state, ks, cam, x=xt).uv.reshape(-1)
+    st.assert_close(H[:, TD_INDEX:TD_INDEX + 1], st.fd_jacobian(h_of_td, x[TD_INDEX:TD_INDEX + 1]), 1e-6)
+    return pred.uv.reshape(-1), H
+
+
+def test_updates_with_the_clock_offset_equal_the_dense_reference():
+    """The clock offset's column of H enters the batch update, the frame's factored batches and
+    the search ellipses exactly as a dense EKF with that H."""
+    cam = CAMERAS["pinhole"]
+    rng = np.random.default_rng(16)
+    s = mixed_state(rng, CAMERA_DIM_TIMED, n_points=5, n_inverse=4, cam=cam)
+    assert s.has_time_offset and abs(s.t_d) > 0
+    x0, P0 = s.x.copy(), s.P.copy()
+    b1, b2 = np.array([0, 5, 6, 2]), np.array([7, 1, 8])
+    z1, z2 = true_matches(s, b1, cam, rng, 2.0), true_matches(s, b2, cam, rng, 2.0)
+    R1, R2 = np.kron(np.eye(len(b1)), R_PIX), np.kron(np.eye(len(b2)), R_PIX)
+
+    h1, H1 = dense_H_timed(s, b1, cam)
+    S1 = H1 @ P0 @ H1.T + R1
+    K1 = P0 @ H1.T @ np.linalg.inv(S1)
+    x1 = x0 + K1 @ (z1.reshape(-1) - h1)
+    x1[Q_SLICE] /= np.linalg.norm(x1[Q_SLICE])
+    P1 = P0 - K1 @ S1 @ K1.T
+    h2, H2 = dense_H_timed(s, b2, cam, x=x1)
+    S2 = H2 @ P1 @ H2.T + R2
+    K2 = P1 @ H2.T @ np.linalg.inv(S2)
+    x2_ref, P2_ref = normalise(x1 + K2 @ (z2.reshape(-1) - h2), P1 - K2 @ S2 @ K2.T)
+
+    S_each = innovation_covariances(s, predict(s, b1, cam), R_PIX)
+    for i in range(len(b1)):
+        st.assert_close(S_each[i], S1[2 * i:2 * i + 2, 2 * i:2 * i + 2], 1e-10)
+    fu = FrameUpdate(s, cam, R_PIX)
+    st.assert_close(fu.update(b1, z1).S, S1, 1e-10)
+    st.assert_close(fu.x, x1, 1e-12)
+    S_now = fu.innovation_covariances(fu.predict(b2))
+    for i in range(len(b2)):
+        st.assert_close(S_now[i], S2[2 * i:2 * i + 2, 2 * i:2 * i + 2], 1e-9)
+    st.assert_close(fu.update(b2, z2).S, S2, 1e-9)
+    fu.commit()
+    st.assert_close(s.x, x2_ref, 1e-12)
+    st.assert_close(s.P, P2_ref, 1e-9)
+    # One batch through update() as well.
+    one = State(x0, P0, s.cam_dim, s.kinds, s.anchors)
+    K, S_ref, P_ref = joseph_update(P0, H1, R1)
+    x_ref, P_ref = normalise(x0 + K @ (z1.reshape(-1) - h1), P_ref)
+    update(one, b1, z1, cam, R_PIX)
+    st.assert_close(one.x, x_ref, 1e-12)
+    st.assert_close(one.P, P_ref, 1e-9)
+
+
+def test_the_clock_offset_moves_a_prediction_along_the_cameras_motion():
+    """With ``t_d`` in the state a feature is predicted where the constant-velocity camera puts
+    it ``t_d`` later; ``H_t`` is that motion's image velocity (central differences of the motion
+    model), so a wrong quaternion-rate convention fails here."""
+    from runtime.slam.motion import f_and_dfdx
+
+    cam = CAMERAS["pinhole"]
+    rng = np.random.default_rng(17)
+    s = mixed_state(rng, CAMERA_DIM_TIMED, n_points=5, n_inverse=3, cam=cam)
+    ks = np.arange(s.n_features)
+    t_d = 0.004
+    s.x[TD_INDEX] = t_d
+    pred = predict(s, ks, cam)
+    assert pred.valid.all()
+
+    def uv_after(dt):
+        x = s.x.copy()
+        x[TD_INDEX] = 0.0
+        if dt != 0.0:
+            x_v, _ = f_and_dfdx(x[:s.cam_dim], abs(dt)) if dt > 0 else f_and_dfdx(
+                np.r_[x[:7], -x[7:13], x[13:s.cam_dim]], -dt)
+            x[:s.cam_dim] = x_v
+        return predict(s, ks, cam, x=x).uv
+    eps = 1e-5
+    np.testing.assert_allclose(pred.H_t, (uv_after(eps) - uv_after(-eps)) / (2 * eps), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(pred.uv, uv_after(t_d), atol=0.05)     # first order in t_d
+    assert np.abs(pred.uv - uv_after(0.0)).max() > 0.5                   # and it moves them
