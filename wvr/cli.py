@@ -390,6 +390,9 @@ def cmd_slam(args) -> int:
           + (f"; track LOST for {r.lost_frames} frames" if r.lost else "")
           + (f"; IMU: {r.imu['gaps']} gaps, {r.imu['spikes']} spikes, {r.imu['non_finite']} bad samples"
              if r.imu.get("rows") and (r.imu["gaps"] or r.imu["spikes"] or r.imu["non_finite"]) else ""))
+    if r.imu_clock_offset_s is not None:
+        print(f"IMU clock offset {1000 * r.imu_clock_offset_s:.1f} +- {1000 * r.imu_clock_offset_sd_s:.1f} ms "
+              "(estimated; a sample stamped t was taken at t - offset on the camera's clock)")
     if args.map and r.first_localised_s is None:
         print("the camera was never located in the saved map: trajectory.tum is empty")
     print(f"wrote {Path(args.out) / 'trajectory.tum'}, map.csv, stats.json"

@@ -97,8 +97,9 @@ def predict(state: State, ks, cam: CameraIntrinsics, x=None) -> Prediction:
     RANSAC hypothesis or an updated mean with the same layout).
 
     With the IMU's clock offset ``t_d`` in the state, the camera block runs on the IMU's
-    stamps, ``t_d`` behind the image's time, so a feature is predicted where it will be
-    ``t_d`` later: ``uv + t_d d uv/dt`` (first order; ``H_t = d uv/dt``)."""
+    stamps and was propagated to the image's time plus ``t_ref`` (the offset's estimate then),
+    so a feature is predicted where it is ``t_d - t_ref`` later: ``uv + (t_d - t_ref) d uv/dt``
+    (first order; ``H_t = d uv/dt``)."""
     ks = np.ascontiguousarray(np.asarray(ks, dtype=np.intp).reshape(-1))
     model, lens = lens_kernel_args(cam)
     xs = state.x if x is None else np.ascontiguousarray(x, dtype=float)
@@ -106,7 +107,7 @@ def predict(state: State, ks, cam: CameraIntrinsics, x=None) -> Prediction:
     if not state.has_time_offset:
         return Prediction(ks, uv, H_c, H_f, valid)
     H_t = image_velocity(xs, H_c)
-    return Prediction(ks, uv + xs[TD_INDEX] * H_t, H_c, H_f, valid, H_t)
+    return Prediction(ks, uv + (xs[TD_INDEX] - state.t_ref) * H_t, H_c, H_f, valid, H_t)
 
 
 def predict_uv(state: State, ks, cam: CameraIntrinsics, x=None) -> np.ndarray:

@@ -19,6 +19,7 @@ from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
 from .measurement import predict, predict_points
+from .state import TD_INDEX
 from .system import MonoSLAM, SlamStartError
 
 
@@ -44,6 +45,16 @@ class SlamRun:
     imu_frames: int
     imu: dict = field(default_factory=dict)
     messages: tuple = ()
+    #: The IMU's clock offset the filter ended with and its standard deviation, s (None without
+    #: that state): an IMU sample stamped t was taken at camera time t - offset.
+    imu_clock_offset_s: float | None = None
+    imu_clock_offset_sd_s: float | None = None
+
+
+def _clock_offset(state) -> dict:
+    if state is None or not state.has_time_offset:
+        return {}
+    return {"imu_clock_offset_s": state.t_d, "imu_clock_offset_sd_s": float(np.sqrt(state.P[TD_INDEX, TD_INDEX]))}
 
 
 def check_lens_invertible(cam: CameraIntrinsics) -> None:
@@ -208,6 +219,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         mean_outliers=mean([s.outliers for s in proc]),
         mean_ms_per_frame=1000 * mean([s.seconds for s in proc]),
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
-        imu_frames=sum(1 for s in proc if s.imu), imu=asdict(slam.imu.counts), messages=tuple(slam.messages))
+        imu_frames=sum(1 for s in proc if s.imu), imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
+        **_clock_offset(slam.state))
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
     return result

@@ -230,6 +230,9 @@ class State:
     cam_dim: int = CAMERA_DIM
     kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
     anchors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    #: The clock offset the camera block was last propagated with (s): it stands at the frame's
+    #: time plus ``t_ref`` on the IMU's clock, so measurements see ``t_d - t_ref`` of motion.
+    t_ref: float = 0.0
 
     def __post_init__(self):
         self.cam_dim = _check_camera_dim(self.cam_dim)
@@ -259,7 +262,7 @@ class State:
         return cls(x_v, P_vv, cam_dim=len(x_v))
 
     def copy(self) -> "State":
-        return State(self.x.copy(), self.P.copy(), self.cam_dim, self.kinds.copy(), self.anchors.copy())
+        return State(self.x.copy(), self.P.copy(), self.cam_dim, self.kinds.copy(), self.anchors.copy(), self.t_ref)
 
     # -- views --
     @property

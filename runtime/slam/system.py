@@ -170,27 +170,47 @@ class _Track:
         self.score = 0.0
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
+        self.stamp: float | None = None          # the IMU-clock time the camera block stands at
 
     @property
     def lost(self) -> bool:
         return self.low_matches >= self.slam.settings.lost_after
 
     def copy_for(self, state: State, features: list[MapFeature]) -> "_Track":
-        return _Track(self.slam, state, features)
+        tr = _Track(self.slam, state, features)
+        tr.stamp = self.stamp
+        return tr
+
+    def span(self, t_prev: float, t: float) -> tuple[float, float]:
+        """The prediction's interval on the IMU's clock for the frame at camera time ``t``: from
+        where the camera block stands to ``t`` plus the clock offset's estimate."""
+        if not self.state.has_time_offset:
+            return t_prev, t
+        t0 = t_prev if self.stamp is None else self.stamp
+        return t0, max(t + self.state.t_d, t0)
 
     # ------------------------------------------------------------------ one frame
+    def predict(self, t_prev: float, t: float, imu_rows, noise_gain: float) -> bool:
+        """The camera block to the frame at camera time ``t``, through the IMU rows when they
+        cover it (True), else by the constant-velocity model."""
+        cfg = self.slam.cfg
+        t0, t1 = self.span(t_prev, t)
+        self.stamp = t1
+        self.state.t_ref = self.state.t_d
+        if imu_rows is not None:
+            try:
+                predict_imu(self.state, imu_rows, t0, t1, cfg, noise_gain=noise_gain,
+                            covered_until=self.slam.imu.covered_until)
+                return True
+            except (SlamNumericalError, ValueError):
+                pass
+        predict_cv(self.state, t1 - t0, cfg, noise_gain=noise_gain)
+        return False
+
     def step(self, g: np.ndarray, t_prev: float, t: float, imu_rows, st: FrameStats, frame: int) -> None:
         s, cfg = self.slam.settings, self.slam.cfg
         lost = self.lost
-        if imu_rows is not None:
-            try:
-                predict_imu(self.state, imu_rows, t_prev, t, cfg, noise_gain=s.lost_noise_gain if lost else 1.0,
-                            covered_until=self.slam.imu.covered_until)
-                st.imu = True
-            except (SlamNumericalError, ValueError):
-                imu_rows = None
-        if imu_rows is None:
-            predict_cv(self.state, t - t_prev, cfg, noise_gain=s.lost_noise_gain if lost else 1.0)
+        st.imu = self.predict(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
         counts = saved = None
         if lost:
             # Lost: the map is frozen; the pose is sought again by whole-image matches
@@ -816,7 +836,7 @@ class MonoSLAM:
         t_prev = self.t_prev
         self.t_prev = t
         g = grey(image)
-        rows = self.imu.covering(t_prev, t) if (self.settings.use_imu and len(self.imu.rows)) else None
+        rows = self._imu_rows(t_prev, t)
         stats = []
         for tr in self._tracks:
             st = FrameStats(self.frame, t)
@@ -824,7 +844,7 @@ class MonoSLAM:
             st.lost = tr.lost
             st.map_size = tr.state.n_features
             stats.append(st)
-        self.imu.drop_before(t)
+        self._drop_imu(t)
         self._decide()
         st = stats[0] if len(self._tracks) == len(stats) else stats[self._winner]
         st.hypotheses = len(self._tracks)
@@ -848,20 +868,23 @@ class MonoSLAM:
             self.messages.append(f"slam: planar target ambiguity resolved at frame {self.frame} "
                                  f"(log-likelihood ratio {gap:.1f}, pose {best})")
 
+    def _imu_rows(self, t_prev: float, t: float):
+        """The IMU rows covering every track's prediction to the frame at ``t`` (None: not
+        covered, or no IMU)."""
+        if not (self.settings.use_imu and len(self.imu.rows)):
+            return None
+        spans = [tr.span(t_prev, t) for tr in self._tracks] or [(t_prev, t)]
+        return self.imu.covering(min(a for a, _ in spans), max(b for _, b in spans))
+
+    def _drop_imu(self, t: float) -> None:
+        self.imu.drop_before(min([t] + [tr.stamp for tr in self._tracks if tr.stamp is not None]))
+
     def skip(self, t: float, why: str) -> FrameStats:
         """A frame that could not be read: predict through it, count it."""
         self.frame += 1
-        rows = self.imu.covering(self.t_prev, t) if (self.settings.use_imu and len(self.imu.rows)) else None
+        rows = self._imu_rows(self.t_prev, t)
         for tr in self._tracks:
-            done = False
-            if rows is not None:
-                try:
-                    predict_imu(tr.state, rows, self.t_prev, t, self.cfg, covered_until=self.imu.covered_until)
-                    done = True
-                except (SlamNumericalError, ValueError):
-                    pass
-            if not done:
-                predict_cv(tr.state, t - self.t_prev, self.cfg, noise_gain=self.settings.lost_noise_gain if tr.lost else 1.0)
+            tr.predict(self.t_prev, t, rows, self.settings.lost_noise_gain if tr.lost else 1.0)
         self.t_prev = t
         st = FrameStats(self.frame, t, skipped=why, lost=self.lost, map_size=self.state.n_features)
         self.stats.append(st)

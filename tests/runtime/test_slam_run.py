@@ -312,3 +312,28 @@ def test_wvr_slam_says_bad_input_in_one_line_with_exit_2(static_seq, tmp_path, c
         assert err.startswith("wvr") and "error:" in err and "\n" not in err, (name, err)
         if "max_frames" not in kw:
             assert re.search(message, err), (name, err)
+
+
+@pytest.mark.slow
+def test_the_imus_clock_offset_is_estimated_through_the_whole_run(walk_seq, tmp_path):
+    """The walk's IMU stamps moved 15 ms later (a sample taken at camera time t stamped t +
+    15 ms, as a host stamping on arrival does): the run's estimated clock offset moves by the
+    same, within 4 ms after these 2 s (it is still converging), and the walk still tracks; a
+    no-op or a wrong sign fails."""
+    import shutil
+
+    late = tmp_path / "late"
+    shutil.copytree(walk_seq, late)
+    rows = np.loadtxt(walk_seq / "imu.txt", comments="#")
+    rows[:, 0] += 0.015
+    np.savetxt(late / "imu.txt", rows, fmt="%.9f", header="timestamp wx wy wz ax ay az  (rad/s, m/s^2, camera frame)")
+    imu = replace(CAMERA_ONLY, use_imu=True)
+    a = run_slam(walk_seq, tmp_path / "a", progress=False, settings=imu)
+    b = run_slam(late, tmp_path / "b", progress=False, settings=imu)
+    print(f"\nclock offset {1000 * a.imu_clock_offset_s:.2f} ms, with the stamps 15 ms late "
+          f"{1000 * b.imu_clock_offset_s:.2f} ms (sd {1000 * b.imu_clock_offset_sd_s:.2f})")
+    assert abs((b.imu_clock_offset_s - a.imu_clock_offset_s) - 0.015) < 0.004
+    assert b.imu_frames > 50 and not b.lost
+    assert_tracks(tracking(tmp_path / "b", late), 60)
+    stats = json.loads((tmp_path / "b" / "stats.json").read_text())["totals"]
+    assert stats["imu_clock_offset_s"] == b.imu_clock_offset_s

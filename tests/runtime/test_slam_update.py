@@ -393,4 +393,9 @@ def test_the_clock_offset_moves_a_prediction_along_the_cameras_motion():
     eps = 1e-5
     np.testing.assert_allclose(pred.H_t, (uv_after(eps) - uv_after(-eps)) / (2 * eps), rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(pred.uv, uv_after(t_d), atol=0.05)     # first order in t_d
-    assert np.abs(pred.uv - uv_after(0.0)).max() > 0.5                   # and it moves them
+    uv0 = uv_after(0.0)
+    assert np.abs(pred.uv - uv0).max() > 0.5                             # and it moves them
+    # A camera block already propagated to the frame's time plus t_d (t_ref) moves them no more.
+    s.t_ref = t_d
+    np.testing.assert_allclose(predict(s, ks, cam).uv, uv0, atol=1e-9)
+    np.testing.assert_allclose(predict(s, ks, cam).H_t, pred.H_t, atol=1e-12)
