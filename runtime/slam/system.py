@@ -190,7 +190,7 @@ class _Track:
         return t0, max(t + self.state.t_d, t0)
 
     # ------------------------------------------------------------------ one frame
-    def predict(self, t_prev: float, t: float, imu_rows, noise_gain: float) -> bool:
+    def propagate(self, t_prev: float, t: float, imu_rows, noise_gain: float) -> bool:
         """The camera block to the frame at camera time ``t``, through the IMU rows when they
         cover it (True), else by the constant-velocity model."""
         cfg = self.slam.cfg
@@ -210,7 +210,7 @@ class _Track:
     def step(self, g: np.ndarray, t_prev: float, t: float, imu_rows, st: FrameStats, frame: int) -> None:
         s, cfg = self.slam.settings, self.slam.cfg
         lost = self.lost
-        st.imu = self.predict(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
+        st.imu = self.propagate(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
         counts = saved = None
         if lost:
             # Lost: the map is frozen; the pose is sought again by whole-image matches
@@ -884,7 +884,7 @@ class MonoSLAM:
         self.frame += 1
         rows = self._imu_rows(self.t_prev, t)
         for tr in self._tracks:
-            tr.predict(self.t_prev, t, rows, self.settings.lost_noise_gain if tr.lost else 1.0)
+            tr.propagate(self.t_prev, t, rows, self.settings.lost_noise_gain if tr.lost else 1.0)
         self.t_prev = t
         st = FrameStats(self.frame, t, skipped=why, lost=self.lost, map_size=self.state.n_features)
         self.stats.append(st)

@@ -72,6 +72,25 @@ def true_matches(state: State, ks, cam, rng, noise=1.0) -> np.ndarray:
     return predict(state, ks, cam).uv + rng.normal(0, noise, (len(ks), 2))
 
 
+def two_batch_reference(s: State, cam, b1, z1, b2, z2, jacobian=None):
+    """The dense textbook frame of two batches: the second linearised at the first's mean with
+    the first's covariance. Returns (S1, x1, S2, x2, P2), x2 and P2 renormalised."""
+    jacobian = jacobian or dense_H
+    x0, P0 = s.x.copy(), s.P.copy()
+    R1, R2 = np.kron(np.eye(len(b1)), R_PIX), np.kron(np.eye(len(b2)), R_PIX)
+    h1, H1 = jacobian(s, b1, cam)
+    S1 = H1 @ P0 @ H1.T + R1
+    K1 = P0 @ H1.T @ np.linalg.inv(S1)
+    x1 = x0 + K1 @ (z1.reshape(-1) - h1)
+    x1[Q_SLICE] /= np.linalg.norm(x1[Q_SLICE])
+    P1 = P0 - K1 @ S1 @ K1.T
+    h2, H2 = jacobian(s, b2, cam, x=x1)
+    S2 = H2 @ P1 @ H2.T + R2
+    K2 = P1 @ H2.T @ np.linalg.inv(S2)
+    x2, P2 = normalise(x1 + K2 @ (z2.reshape(-1) - h2), P1 - K2 @ S2 @ K2.T)
+    return S1, x1, S2, x2, P2
+
+
 # -- the batch update --------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
@@ -113,17 +132,7 @@ def test_frame_update_batches_equal_the_dense_reference(model):
     b1, b2 = np.array([0, 5, 6, 2]), np.array([7, 1, 8])
     z1, z2 = true_matches(s, b1, cam, rng, 2.0), true_matches(s, b2, cam, rng, 2.0)
 
-    h1, H1 = dense_H(s, b1, cam)
-    R1, R2 = np.kron(np.eye(len(b1)), R_PIX), np.kron(np.eye(len(b2)), R_PIX)
-    S1 = H1 @ P0_copy @ H1.T + R1
-    K1 = P0_copy @ H1.T @ np.linalg.inv(S1)
-    x1 = x0_copy + K1 @ (z1.reshape(-1) - h1)
-    x1[Q_SLICE] /= np.linalg.norm(x1[Q_SLICE])
-    P1 = P0_copy - K1 @ S1 @ K1.T
-    h2, H2 = dense_H(s, b2, cam, x=x1)
-    S2 = H2 @ P1 @ H2.T + R2
-    K2 = P1 @ H2.T @ np.linalg.inv(S2)
-    x2_ref, P2_ref = normalise(x1 + K2 @ (z2.reshape(-1) - h2), P1 - K2 @ S2 @ K2.T)
+    S1, x1, S2, x2_ref, P2_ref = two_batch_reference(s, cam, b1, z1, b2, z2)
 
     fu = FrameUpdate(s, cam, R_PIX)
     r1 = fu.update(b1, z1)
@@ -332,18 +341,7 @@ def test_updates_with_the_clock_offset_equal_the_dense_reference():
     x0, P0 = s.x.copy(), s.P.copy()
     b1, b2 = np.array([0, 5, 6, 2]), np.array([7, 1, 8])
     z1, z2 = true_matches(s, b1, cam, rng, 2.0), true_matches(s, b2, cam, rng, 2.0)
-    R1, R2 = np.kron(np.eye(len(b1)), R_PIX), np.kron(np.eye(len(b2)), R_PIX)
-
-    h1, H1 = dense_H_timed(s, b1, cam)
-    S1 = H1 @ P0 @ H1.T + R1
-    K1 = P0 @ H1.T @ np.linalg.inv(S1)
-    x1 = x0 + K1 @ (z1.reshape(-1) - h1)
-    x1[Q_SLICE] /= np.linalg.norm(x1[Q_SLICE])
-    P1 = P0 - K1 @ S1 @ K1.T
-    h2, H2 = dense_H_timed(s, b2, cam, x=x1)
-    S2 = H2 @ P1 @ H2.T + R2
-    K2 = P1 @ H2.T @ np.linalg.inv(S2)
-    x2_ref, P2_ref = normalise(x1 + K2 @ (z2.reshape(-1) - h2), P1 - K2 @ S2 @ K2.T)
+    S1, x1, S2, x2_ref, P2_ref = two_batch_reference(s, cam, b1, z1, b2, z2, dense_H_timed)
 
     S_each = innovation_covariances(s, predict(s, b1, cam), R_PIX)
     for i in range(len(b1)):
@@ -360,7 +358,8 @@ def test_updates_with_the_clock_offset_equal_the_dense_reference():
     st.assert_close(s.P, P2_ref, 1e-9)
     # One batch through update() as well.
     one = State(x0, P0, s.cam_dim, s.kinds, s.anchors)
-    K, S_ref, P_ref = joseph_update(P0, H1, R1)
+    h1, H1 = dense_H_timed(one, b1, cam)
+    K, S_ref, P_ref = joseph_update(P0, H1, np.kron(np.eye(len(b1)), R_PIX))
     x_ref, P_ref = normalise(x0 + K @ (z1.reshape(-1) - h1), P_ref)
     update(one, b1, z1, cam, R_PIX)
     st.assert_close(one.x, x_ref, 1e-12)
