@@ -493,6 +493,11 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                "events": log.events, "prompts": len(loop.prompts), "ended": interrupted or "complete"}
     if loop.slam is not None:
         summary["lost_frames"] = sum(1 for s in loop.slam.stats if s.lost)
+        state = loop.slam.state
+        if state is not None and state.has_time_offset:
+            # What the IMU's stamps lag the camera's by, as the filter learnt it (a rig's host
+            # stamps both on arrival): worth knowing before trusting either clock.
+            summary["imu_clock_offset_ms"] = 1000 * state.t_d
         (out / "slam_stats.json").write_text(json.dumps({"frames": [asdict(s) for s in loop.slam.stats]}, indent=0))
     cmd_rate, meas_rate = log.column("cmd_rate"), log.column("meas_rate")
     summary["peak_cmd_rate_deg_s"] = float(np.degrees(np.abs(cmd_rate).max()))

@@ -49,7 +49,13 @@ def test_wvr_run_against_the_hil_twin_fixates_as_sim_run_does(tmp_path):
     hil_rms = float(np.sqrt(np.mean(err[after] ** 2)))
     assert main(["sim", "run", "--scenario", "workbench-static", "--task", "fixate", "--seconds", "1.5",
                  "--out", str(tmp_path / "sim")]) == 0
-    sim_rms = json.loads((tmp_path / "sim" / "summary.json").read_text())["fixation_rms_deg"]
+    sim_summary = json.loads((tmp_path / "sim" / "summary.json").read_text())
+    sim_rms = sim_summary["fixation_rms_deg"]
+    # The IMU's clock offset the filter learnt, in both summaries (the rig's host stamps the
+    # IMU's stream and the camera's frames on arrival).
+    hil_offset = json.loads((tmp_path / "run" / "summary.json").read_text())["imu_clock_offset_ms"]
+    print(f"\nIMU clock offset learnt: HIL {hil_offset:.1f} ms, sim run {sim_summary['imu_clock_offset_ms']:.1f} ms")
+    assert np.isfinite(hil_offset) and np.isfinite(sim_summary["imu_clock_offset_ms"])
     assert hil_rms < 1.0 and abs(hil_rms - sim_rms) < 0.5, (hil_rms, sim_rms)
     # The board saw every period's targets and the safe stop homed the head.
     assert hil.stats.target_commands >= 44 and hil.stats.stalls == 0
