@@ -112,6 +112,7 @@ _positive_int = _number(int, lambda v: v > 0, "a whole number above 0")
 _positive = _number(float, lambda v: v > 0, "a number above 0")
 _nonnegative = _number(float, lambda v: v >= 0, "a number >= 0")
 _seconds = _number(float, lambda v: v > 0, "a duration above 0 s")
+_milliseconds = _number(float, lambda v: abs(v) < 1000, "a number of ms between -1000 and 1000")
 
 
 def _short(message: str) -> str:
@@ -372,17 +373,18 @@ def cmd_track(args) -> int:
 def cmd_slam(args) -> int:
     from dataclasses import replace
 
-    from runtime.slam.config import MapSettings
+    from runtime.slam.config import DEFAULT_CONFIG, MapSettings
     from runtime.slam.run import run_slam
 
     settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
                        features=args.features)
+    cfg = replace(DEFAULT_CONFIG, time_offset0=args.imu_clock_offset / 1000.0)
     if args.measure is not None:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends
-        r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, settings=settings,
+        r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, cfg=cfg, settings=settings,
                      save_map=args.save_map, map_path=args.map)
     print(f"{r.frames} frames ({r.skipped} skipped), {r.features} features in the map, {r.mean_matched:.1f} of "
           f"{r.mean_searched:.1f} searched matched per frame, {r.median_ms_per_frame:.1f} ms per frame (median)"
@@ -906,6 +908,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="ignore imu.txt: camera only, the constant-velocity motion model (the paper's system)")
     sl.add_argument("--no-imu-biases", action="store_true",
                     help="with an IMU, take it as calibrated (no gyro and accelerometer bias states)")
+    sl.add_argument("--imu-clock-offset", type=_milliseconds, default=0.0, metavar="MS",
+                    help="the IMU's stamps' lag behind the camera's, ms, where the filter starts learning it "
+                         "(default 0; learnt from 0 up to about 20 ms: give a measured latency beyond)")
     sl.add_argument("--features", choices=["inverse-depth", "particles"], default="inverse-depth",
                     help="how new features start: inverse depth, in the filter from the first frame (default), or "
                          "the paper's particle depth pdf")

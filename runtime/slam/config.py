@@ -37,8 +37,10 @@ class SlamConfig:
         m/s^2/sqrt(s).
     gyro_bias_sigma0, accel_bias_sigma0 : the biases' prior standard deviations before any
         still period (a MEMS part's offsets after factory trim), rad/s and m/s^2.
-    time_offset_sigma0, time_offset_walk : the IMU's clock offset against the camera's (stamps
-        taken by a host on arrival): its prior standard deviation, s, and random walk, s/sqrt(s).
+    time_offset0, time_offset_sigma0, time_offset_walk : the IMU's clock offset against the
+        camera's (stamps taken by a host on arrival): its prior mean and standard deviation, s
+        (learnt from zero up to about 20 ms; give a rig's measured latency beyond), and its
+        random walk, s/sqrt(s).
     psd_rel_tol : the covariance guard's tolerance for negative eigenvalues (relative).
     psd_check_every : frames between full positive-semi-definiteness checks (a Cholesky of P);
         finiteness, symmetry and non-negative variances are checked at every step.
@@ -55,13 +57,16 @@ class SlamConfig:
     accel_bias_walk: float = 2e-3
     gyro_bias_sigma0: float = 0.01
     accel_bias_sigma0: float = 0.1
+    time_offset0: float = 0.0
     time_offset_sigma0: float = 0.005
     time_offset_walk: float = 1e-4
     psd_rel_tol: float = 1e-9
     psd_check_every: int = 10
 
     def __post_init__(self):
-        _check_numbers(self)
+        _check_numbers(self, skip=("time_offset0",))
+        if not math.isfinite(self.time_offset0):
+            raise ValueError(f"SlamConfig.time_offset0 = {self.time_offset0!r} must be a finite number of seconds")
 
 
 DEFAULT_CONFIG = SlamConfig()

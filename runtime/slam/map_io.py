@@ -63,7 +63,7 @@ class SavedMap:
             P_v[13:16, 13:16] = np.eye(3) * cfg.gyro_bias_sigma0**2
             P_v[16:19, 16:19] = np.eye(3) * cfg.accel_bias_sigma0**2
         if cam_dim > 19:
-            P_v[19, 19] = cfg.time_offset_sigma0**2
+            x_v[19], P_v[19, 19] = cfg.time_offset0, cfg.time_offset_sigma0**2
         n = cam_dim + len(self.y)
         P = np.zeros((n, n))
         P[:cam_dim, :cam_dim] = P_v

@@ -186,7 +186,9 @@ class _Track:
         where the camera block stands to ``t`` plus the clock offset's estimate."""
         if not self.state.has_time_offset:
             return t_prev, t
-        t0 = t_prev if self.stamp is None else self.stamp
+        # A new camera block (the start, a saved map's session) stands at its frame's time plus
+        # the offset's prior mean.
+        t0 = t_prev + self.state.t_d if self.stamp is None else self.stamp
         return t0, max(t + self.state.t_d, t0)
 
     # ------------------------------------------------------------------ one frame
@@ -736,7 +738,7 @@ class MonoSLAM:
             for sl, s0 in ((BG_SLICE, self.cfg.gyro_bias_sigma0), (BA_SLICE, self.cfg.accel_bias_sigma0)):
                 P[sl, sl] = np.eye(3) * s0**2
             if self.cam_dim == CAMERA_DIM_TIMED:
-                P[TD_INDEX, TD_INDEX] = self.cfg.time_offset_sigma0**2
+                x_v[TD_INDEX], P[TD_INDEX, TD_INDEX] = self.cfg.time_offset0, self.cfg.time_offset_sigma0**2
             # A still stretch before the first frame gives the biases: the gyro's directly, the
             # accelerometer's through the start's attitude, correlated with it (as a new
             # feature is with the camera), so that refining the attitude refines it.

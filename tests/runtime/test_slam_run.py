@@ -337,3 +337,33 @@ def test_the_imus_clock_offset_is_estimated_through_the_whole_run(walk_seq, tmp_
     assert_tracks(tracking(tmp_path / "b", late), 60)
     stats = json.loads((tmp_path / "b" / "stats.json").read_text())["totals"]
     assert stats["imu_clock_offset_s"] == b.imu_clock_offset_s
+
+
+@pytest.mark.slow
+def test_a_measured_latency_starts_the_clock_offset_where_learning_from_zero_fails(walk_seq, tmp_path, capsys):
+    """IMU stamps 50 ms late are beyond what the filter learns from zero; given as the start
+    (`wvr slam --imu-clock-offset 50`), the walk tracks and the estimate ends at the same
+    offset plus what the unshifted run learnt. A flag that does not reach the filter, or
+    its units taken as seconds, fails here."""
+    import shutil
+
+    from wvr.cli import main
+
+    late = tmp_path / "late"
+    shutil.copytree(walk_seq, late)
+    rows = np.loadtxt(walk_seq / "imu.txt", comments="#")
+    rows[:, 0] += 0.050
+    np.savetxt(late / "imu.txt", rows, fmt="%.9f", header="timestamp wx wy wz ax ay az  (rad/s, m/s^2, camera frame)")
+    a = run_slam(walk_seq, tmp_path / "a", progress=False, settings=replace(CAMERA_ONLY, use_imu=True))
+    assert main(["slam", str(late), "--out", str(tmp_path / "b"), "--imu-clock-offset", "50"]) == 0
+    assert "IMU clock offset" in capsys.readouterr().out
+    b = json.loads((tmp_path / "b" / "stats.json").read_text())["totals"]
+    print(f"\nclock offset {1000 * a.imu_clock_offset_s:.2f} ms; stamps 50 ms late, started at 50: "
+          f"{1000 * b['imu_clock_offset_s']:.2f} ms")
+    assert abs((b["imu_clock_offset_s"] - a.imu_clock_offset_s) - 0.050) < 0.004
+    assert not b["lost"] and b["imu_frames"] > 50
+    assert_tracks(tracking(tmp_path / "b", late), 60)
+    # A number that is not one is refused by the parser in one line.
+    with pytest.raises(SystemExit) as e:
+        main(["slam", str(late), "--out", str(tmp_path / "c"), "--imu-clock-offset", "abc"])
+    assert e.value.code == 2 and "--imu-clock-offset" in capsys.readouterr().err
