@@ -149,6 +149,8 @@ class RobotInfo:
     speed_limit : (3,) rad/s, the fastest any joint may be driven (at most the servos').
     name : for logs and reports. imu_noise : its IMU's noise (:class:`ImuNoise`), or None for
     the SLAM's defaults (a calibrated MEMS IMU's raw rates and specific force).
+    imu_clock_offset_s : the IMU's stamps' measured lag behind the camera's, s, where SLAM
+    starts learning it.
     """
 
     head: HeadGeometry
@@ -157,6 +159,7 @@ class RobotInfo:
     speed_limit: np.ndarray
     name: str = "robot"
     imu_noise: ImuNoise | None = None
+    imu_clock_offset_s: float = 0.0
 
     @property
     def lower(self) -> np.ndarray:

@@ -74,10 +74,12 @@ class _CtrlC:
 
 
 def slam_config(info: RobotInfo) -> SlamConfig:
-    """The SLAM's filter settings for a robot: its IMU's noise where it reports one."""
+    """The SLAM's filter settings for a robot: its IMU's noise where it reports one, and its
+    clock offset's start."""
+    cfg = replace(DEFAULT_CONFIG, time_offset0=info.imu_clock_offset_s)
     if info.imu_noise is None:
-        return DEFAULT_CONFIG
-    return replace(DEFAULT_CONFIG, imu_gyro_noise=info.imu_noise.gyro, imu_accel_noise=info.imu_noise.accel)
+        return cfg
+    return replace(cfg, imu_gyro_noise=info.imu_noise.gyro, imu_accel_noise=info.imu_noise.accel)
 
 
 #: What the closed loop's controller may be asked to do.

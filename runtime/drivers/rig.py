@@ -35,6 +35,8 @@ rig.toml (the contract; the keys marked optional may be left out)::
     rate_hz = 100.0               # optional: the stream's sample rate (default 100 RVC, 200 text)
     gyro_bias = [0, 0, 0]         # optional, rad/s, camera frame (wvr calibrate imu writes it)
     accel_bias = [0, 0, 0]        # optional, m/s^2, camera frame
+    clock_offset_ms = 0.0         # optional: the IMU's stamps' measured lag behind the camera's,
+                                  # where SLAM starts learning it (it learns up to ~20 ms alone)
     [safety]                      # optional table: runtime.drivers.safety.SafetySettings
     motion_limit_deg_s = 30.0
     pose_timeout_s = 0.5
@@ -98,7 +100,7 @@ _KEYS = {
     "calibration": {"neutral_us", "us_per_deg", "sign", "min_us", "max_us"},
     "calibration-dynamixel": {"zero_ticks", "ticks_per_deg", "sign", "min_ticks", "max_ticks"},
     "camera": {"source", "camera_toml", "fps", "timeout_s"},
-    "imu": {"driver", "port", "baud", "R_cam_imu", "anchor", "gyro_bias", "accel_bias", "rate_hz"},
+    "imu": {"driver", "port", "baud", "R_cam_imu", "anchor", "gyro_bias", "accel_bias", "rate_hz", "clock_offset_ms"},
     "safety": {"motion_limit_deg_s", "pose_timeout_s", "hold_s", "home_rate_deg_s", "estop_file", "heartbeat_timeout_s"},
     "start": {"target"},
 }
@@ -128,6 +130,7 @@ class RigConfig:
     imu_rate_hz: float = 100.0
     gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
     accel_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    imu_clock_offset_s: float = 0.0
     safety: SafetySettings = field(default_factory=SafetySettings)
     estop_file: Path | None = None
     start_target: Path | None = None
@@ -320,6 +323,7 @@ def load_rig(path: str | Path) -> RigConfig:
                      imu_rate_hz=_number(path, im, "rate_hz", "imu", 100.0 if drv == "bno085-rvc" else 200.0),
                      gyro_bias=_vector(path, im, "gyro_bias", "imu", default=np.zeros(3)),
                      accel_bias=_vector(path, im, "accel_bias", "imu", default=np.zeros(3)),
+                     imu_clock_offset_s=_number(path, im, "clock_offset_ms", "imu", 0.0, positive=False) / 1000.0,
                      safety=safety, estop_file=estop, start_target=start, servo_driver=driver, watchdog_s=watchdog_s,
                      answer_timeout_s=answer_timeout_s)
 
@@ -442,7 +446,8 @@ class HardwareRig:
     def info(self) -> RobotInfo:
         return RobotInfo(head=self.cfg.head, camera=self.cfg.camera, frame_rate=self.cfg.fps,
                          speed_limit=np.minimum(self.cfg.head.max_speed, self.cfg.speed_limit_rad_s), name="rig",
-                         imu_noise=self.imu.noise if self.imu is not None else None)
+                         imu_noise=self.imu.noise if self.imu is not None else None,
+                         imu_clock_offset_s=self.cfg.imu_clock_offset_s)
 
     def _imu_until(self, t: float) -> ImuSamples:
         if self.imu is None:

@@ -393,6 +393,14 @@ def test_rig_toml_in_the_issues_exact_form_loads(tmp_path):
     p = write_rig(tmp_path, RIG.format(port="/dev/ttyACM0").replace('driver = "maestro"',
                                                                      'driver = "maestro"\nanswer_timeout_ms = 1500', 1))
     assert load_rig(p).answer_timeout_s == 1.5
+    assert cfg.imu_clock_offset_s == 0.0
+    p = write_rig(tmp_path, RIG.format(port="/dev/ttyACM0").replace('port = "/dev/ttyUSB0"',
+                                                                     'port = "/dev/ttyUSB0"\nclock_offset_ms = -12.5', 1))
+    assert load_rig(p).imu_clock_offset_s == -0.0125
+    p = write_rig(tmp_path, RIG.format(port="/dev/ttyACM0").replace('port = "/dev/ttyUSB0"',
+                                                                     'port = "/dev/ttyUSB0"\nclock_offset_ms = "late"', 1))
+    with pytest.raises(RigFileError, match="imu.clock_offset_ms"):
+        load_rig(p)
 
 
 @pytest.mark.parametrize("change, message", [
@@ -447,6 +455,9 @@ def test_the_rvc_streams_noise_reaches_the_slams_prediction():
         cfg = slam_config(info)
         assert (cfg.imu_gyro_noise, cfg.imu_accel_noise) == (rvc.noise.gyro, rvc.noise.accel)
         assert slam_config(RobotInfo(head, default_camera(), 30.0, head.max_speed)) == DEFAULT_CONFIG
+        # A measured IMU latency (rig.toml's [imu] clock_offset_ms) is where SLAM starts its clock offset.
+        late = RobotInfo(head, default_camera(), 30.0, head.max_speed, imu_clock_offset_s=0.045)
+        assert slam_config(late).time_offset0 == 0.045
     finally:
         rvc.close()
         text.close()
