@@ -230,9 +230,10 @@ class State:
     cam_dim: int = CAMERA_DIM
     kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
     anchors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    #: The clock offset the camera block was last propagated with (s): it stands at the frame's
-    #: time plus ``t_ref`` on the IMU's clock, so measurements see ``t_d - t_ref`` of motion.
-    t_ref: float = 0.0
+    #: Where the camera block stands on the IMU's clock, s after its frame's time: the clock
+    #: offset it was last propagated with (a new block: its offset's mean), so measurements see
+    #: ``t_d - t_ref`` of motion.
+    t_ref: float | None = None
 
     def __post_init__(self):
         self.cam_dim = _check_camera_dim(self.cam_dim)
@@ -253,6 +254,7 @@ class State:
         if self.P.shape != (n, n):
             raise ValueError(f"P must have shape ({n}, {n}), got {self.P.shape}")
         self.starts = feature_starts(self.cam_dim, self.kinds)
+        self.t_ref = self.t_d if self.t_ref is None else float(self.t_ref)
         self.guard("construction")
 
     @classmethod

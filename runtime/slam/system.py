@@ -170,25 +170,20 @@ class _Track:
         self.score = 0.0
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
-        self.stamp: float | None = None          # the IMU-clock time the camera block stands at
 
     @property
     def lost(self) -> bool:
         return self.low_matches >= self.slam.settings.lost_after
 
     def copy_for(self, state: State, features: list[MapFeature]) -> "_Track":
-        tr = _Track(self.slam, state, features)
-        tr.stamp = self.stamp
-        return tr
+        return _Track(self.slam, state, features)
 
     def span(self, t_prev: float, t: float) -> tuple[float, float]:
         """The prediction's interval on the IMU's clock for the frame at camera time ``t``: from
         where the camera block stands to ``t`` plus the clock offset's estimate."""
         if not self.state.has_time_offset:
             return t_prev, t
-        # A new camera block (the start, a saved map's session) stands at its frame's time plus
-        # the offset's prior mean.
-        t0 = t_prev + self.state.t_d if self.stamp is None else self.stamp
+        t0 = t_prev + self.state.t_ref
         return t0, max(t + self.state.t_d, t0)
 
     # ------------------------------------------------------------------ one frame
@@ -197,8 +192,7 @@ class _Track:
         cover it (True), else by the constant-velocity model."""
         cfg = self.slam.cfg
         t0, t1 = self.span(t_prev, t)
-        self.stamp = t1
-        self.state.t_ref = self.state.t_d
+        self.state.t_ref = t1 - t
         if imu_rows is not None:
             try:
                 predict_imu(self.state, imu_rows, t0, t1, cfg, noise_gain=noise_gain,
@@ -879,7 +873,7 @@ class MonoSLAM:
         return self.imu.covering(min(a for a, _ in spans), max(b for _, b in spans))
 
     def _drop_imu(self, t: float) -> None:
-        self.imu.drop_before(min([t] + [tr.stamp for tr in self._tracks if tr.stamp is not None]))
+        self.imu.drop_before(t + min([0.0] + [tr.state.t_ref for tr in self._tracks]))
 
     def skip(self, t: float, why: str) -> FrameStats:
         """A frame that could not be read: predict through it, count it."""

@@ -28,6 +28,7 @@ from runtime.slam.state import (
     CAMERA_DIM_TIMED,
     Q_SLICE,
     R_SLICE,
+    TD_INDEX,
     V_SLICE,
     W_SLICE,
     State,
@@ -263,7 +264,7 @@ def test_the_clock_offset_state_converges_to_the_imus_offset(seed, t_d):
     """The IMU's stamps a few ms off the camera's (a host stamping on arrival): the clock-offset
     state, from zero with a 5 ms prior, ends within 3 sigma and 1 ms of the truth."""
     s = simulate_biased_imu(seed, [0.004, -0.006, 0.003], [0.05, -0.04, 0.06], t_d=t_d)
-    sd = np.sqrt(s.P[19, 19])
+    sd = np.sqrt(s.P[TD_INDEX, TD_INDEX])
     print(f"\nclock offset {1000 * s.t_d:.2f} ms (true {1000 * t_d:.1f}, sd {1000 * sd:.2f})")
     assert abs(s.t_d - t_d) < min(3 * sd, 0.001)
     assert sd < 0.3 * CFG.time_offset_sigma0

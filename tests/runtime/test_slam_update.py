@@ -378,6 +378,7 @@ def test_the_clock_offset_moves_a_prediction_along_the_cameras_motion():
     ks = np.arange(s.n_features)
     t_d = 0.004
     s.x[TD_INDEX] = t_d
+    s.t_ref = 0.0                   # the camera block stands at its frame's time
     pred = predict(s, ks, cam)
     assert pred.valid.all()
 
