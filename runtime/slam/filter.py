@@ -217,16 +217,15 @@ class FrameUpdate:
         S = _innovation_kernel(st.P, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f, self.R,
                                _scales(r_scale, len(pred.ks)))
         U = self._U
-        if pred.H_t is not None and len(pred.ks):
-            # The clock offset's column of P = P0 - U U^T, and H's other columns times it.
-            p_t = st.P[:, TD_INDEX] - U @ U[TD_INDEX] if U.shape[1] else st.P[:, TD_INDEX].copy()
-            c = _h_times_kernel(np.ascontiguousarray(p_t[:, None]), st.kinds, st.starts, FEATURE_DIMS, pred.ks,
-                                pred.H_c, pred.H_f)
         if U.shape[1] and len(pred.ks):
             HU = _h_times_kernel(U, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
             HU = HU.reshape(len(pred.ks), 2, -1)
             S -= HU @ np.swapaxes(HU, 1, 2)
         if pred.H_t is not None and len(pred.ks):
+            # The clock offset's column of P = P0 - U U^T, and H's other columns times it.
+            p_t = st.P[:, TD_INDEX] - U @ U[TD_INDEX] if U.shape[1] else st.P[:, TD_INDEX].copy()
+            c = _h_times_kernel(np.ascontiguousarray(p_t[:, None]), st.kinds, st.starts, FEATURE_DIMS, pred.ks,
+                                pred.H_c, pred.H_f)
             _add_time_offset_terms(S, pred.H_t, c.reshape(-1, 2), float(p_t[TD_INDEX]))
         S[~pred.valid] = np.nan
         return S
