@@ -113,6 +113,10 @@ def slam_ate(seq_path: Path, imu: bool = False, exact_start: str = "", map_path:
                 "located_s": r.first_localised_s, "matched": r.mean_matched, "wall_s": time.time() - t0}
 
 
+#: The exact starts a clicked one is compared with: job kind -> slam_ate's exact_start.
+EXACT_STARTS = {"exact": "clicks", "unrefined": "unrefined"}
+
+
 def _job(args):
     kind, scenario, seed = args[:3]
     if kind == "reuse":
@@ -128,10 +132,8 @@ def _job(args):
         return kind, scenario, seed, slam_ate(seq)
     if kind == "imu":
         return kind, scenario, seed, slam_ate(seq, imu=True)
-    if kind == "exact":
-        return kind, scenario, seed, slam_ate(seq, exact_start="clicks")
-    if kind == "unrefined":
-        return kind, scenario, seed, slam_ate(seq, exact_start="unrefined")
+    if kind in EXACT_STARTS:
+        return kind, scenario, seed, slam_ate(seq, exact_start=EXACT_STARTS[kind])
     raise ValueError(kind)
 
 
@@ -159,7 +161,7 @@ def main() -> int:
     if "imu" in parts:
         jobs += [("imu", "walk", s) for s in seeds]
     if "clicks" in parts:
-        jobs += [(k, sc, s) for sc in ("workbench-static", "walk") for s in seeds for k in ("camera", "exact", "unrefined")]
+        jobs += [(k, sc, s) for sc in ("workbench-static", "walk") for s in seeds for k in ("camera", *EXACT_STARTS)]
     if "reuse" in parts:
         jobs += [("reuse", pair, s) for pair in REUSE for s in seeds]
     jobs = list(dict.fromkeys(jobs))
