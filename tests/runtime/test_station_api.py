@@ -285,7 +285,9 @@ def test_a_stalled_browser_never_slows_the_loop_and_gets_the_newest_frame(statio
     t0 = time.time()
     time.sleep(3.0)                       # reads nothing: the server's writes block, not the loop
     advanced = station.live.latest().seq - seq0
-    assert advanced >= 0.5 * 3.0 * station.robot.info.frame_rate, advanced
+    # A loop that waited on this socket would stop within a few frames (about 60 KB each
+    # against the stream's 96 KB send buffer); 10 in 3 s holds on a loaded machine too.
+    assert advanced >= 10, advanced
     now = station.live.latest().seq
     s.settimeout(10)
     f = s.makefile("rb")
