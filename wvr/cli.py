@@ -915,7 +915,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="how new features start: inverse depth, in the filter from the first frame (default), or "
                          "the paper's particle depth pdf")
     sl.add_argument("--measure", type=_positive_int, default=None, metavar="N",
-                    help="features measured per frame, at most (default: MapSettings.measure_max, 40)")
+                    help="features measured per frame, at most (default: MapSettings.measure_max, 60)")
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")

@@ -78,8 +78,8 @@ class MapSettings:
 
     # -- features --
     features: str = "inverse-depth"      # how new features start: FEATURE_TYPES
-    measure_max: int = 40                # features measured per frame, at most
-    visible_min: int = 32                # add features when fewer were matched (inliers)
+    measure_max: int = 60                # features measured per frame, at most
+    visible_min: int = 48                # add features when fewer were matched (inliers)
     new_per_frame: int = 4               # new features started in one frame, at most
     min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
@@ -162,7 +162,7 @@ class MapSettings:
 
     def with_measure(self, n: int) -> "MapSettings":
         """These settings measuring at most ``n`` features a frame, adding new ones below the
-        same fraction of ``n`` as the defaults do (32 of 40)."""
+        same fraction of ``n`` as the defaults do (48 of 60)."""
         fraction = MapSettings.visible_min / MapSettings.measure_max
         return replace(self, measure_max=int(n), visible_min=max(3, min(int(n), int(round(n * fraction)))))
 
