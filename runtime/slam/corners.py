@@ -31,9 +31,12 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     b = int(np.ceil(border / s))
     mask = np.zeros((h, w), np.uint8)
     mask[b:h - b, b:w - b] = 255
-    occ = np.asarray(occupied_uv, float).reshape(-1, 2)
+    occ = np.asarray(occupied_uv, float).reshape(-1, 2) / s
     radius = int(np.ceil(min_distance / s))
-    for u, v in np.rint(occ[np.isfinite(occ).all(axis=1)] / s).astype(int).tolist():
+    # Only discs that reach the image: a point near the camera's plane predicts pixels far out
+    # (1e12), which no integer type holds.
+    near = np.isfinite(occ).all(axis=1) & (np.abs(occ - [w / 2, h / 2]) <= [w / 2 + radius, h / 2 + radius]).all(axis=1)
+    for u, v in np.rint(occ[near]).astype(int).tolist():
         cv2.circle(mask, (u, v), radius, 0, -1)
     pts = cv2.goodFeaturesToTrack(img, maxCorners=n, qualityLevel=quality, minDistance=min_distance / s, mask=mask,
                                   blockSize=5 if s == 1 else 3, useHarrisDetector=False)

@@ -63,6 +63,22 @@ def test_new_corners_avoid_occupied_regions_and_borders():
     assert grey(np.zeros((4, 4, 3), np.uint8)).shape == (4, 4)
 
 
+def test_new_corners_take_predictions_far_outside_the_image():
+    # A feature near the camera's plane predicts pixels like 1e12 (no integer holds them); the
+    # disc near the image is still honoured and the far ones change nothing.
+    img = np.zeros((240, 320), np.float32)
+    for x in range(40, 300, 40):
+        for y in range(40, 220, 40):
+            img[y:y + 10, x:x + 10] = 255
+    near = np.array([[100.0, 100.0], [330.0, 250.0]])
+    occupied = np.array([near[0], [1e12, -3e15], [np.nan, 5.0], [-1e300, 1e300], near[1]])
+    pts = find_new_corners(img, occupied, 50, min_distance=25)
+    assert len(pts) > 10
+    np.testing.assert_array_equal(pts, find_new_corners(img, near, 50, min_distance=25))
+    assert np.min(np.linalg.norm(pts - [100.0, 100.0], axis=1)) >= 25
+    assert np.min(np.linalg.norm(pts - [330.0, 250.0], axis=1)) >= 25    # a disc from just outside
+
+
 def test_score_ignores_gain_and_offset_of_the_lighting():
     img = textured(3)
     t = extract_template(img, (200, 150))
