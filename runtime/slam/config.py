@@ -133,6 +133,12 @@ class MapSettings:
     reloc_confirm_fraction: float = 0.25  # and this fraction of the features searched at the found pose
     reloc_sigma_m: float = 0.02
     reloc_sigma_rad: float = 0.02
+    retry_found_fraction: float = 0.5    # fewer of the searched found: searched again with larger impulses
+    retry_min_searched: int = 10
+    retry_noise_gain: float = 4.0        # those impulses' scale (1: no retry; camera-only predictions)
+    reacquire_after: int = 3             # frames the whole target is predicted in view and missed before it is sought (0: never)
+    reacquire_search: float = 0.5        # sought this far from its prediction, a fraction of its diagonal
+    reacquire_chi2: float = 26.1         # found farther than this from the prediction (chi2, 8 dof, 99.9%): the pose had drifted
     # -- start-up from the known target --
     target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
     known_sigma_px: float = 0.25         # a target corner's measurement, px (its sides: 0.04-0.26 px off)

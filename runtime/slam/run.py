@@ -36,6 +36,7 @@ class SlamRun:
     lost_frames: int
     lost: bool
     relocalised: int
+    reacquired: int                     # times the camera was put back at the target's pose
     first_localised_s: float | None     # when the camera was first placed in the map (a saved map's session)
     mean_searched: float
     mean_matched: float
@@ -214,6 +215,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         added=sum(s.added for s in slam.stats), deleted=sum(s.deleted for s in slam.stats),
         converted=sum(s.converted for s in slam.stats), lost_frames=lost_frames, lost=lost_frames > 0,
         relocalised=sum(1 for s in slam.stats if s.relocalised),
+        reacquired=sum(1 for s in slam.stats if s.reacquired),
         first_localised_s=(first - slam.stats[0].t) if first is not None else None,
         mean_searched=mean([s.searched for s in proc]), mean_matched=mean([s.matched for s in proc]),
         mean_outliers=mean([s.outliers for s in proc]),

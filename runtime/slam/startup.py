@@ -14,6 +14,9 @@ along the rotation-translation ambiguity, so the natural features can correct it
 target has two PnP poses (IPPE's pair, the planar pose ambiguity): when the second explains the
 corners nearly as well (likelihood ratio under ``ambiguity_ratio``), both are kept as hypotheses
 until the map separates them (system.py).
+
+The same target is sought again later when the pose has drifted beyond its corners' search
+ellipses (:func:`find_quadrilateral`, used by system.py's re-acquisition).
 """
 
 from __future__ import annotations
@@ -234,6 +237,47 @@ def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> 
     if not np.isfinite(out).all() or np.linalg.norm(out - uv, axis=1).max() > EDGE_MAX_SHIFT_PX:
         return None
     return out
+
+
+def find_quadrilateral(grey: np.ndarray, uv_pred: np.ndarray, search_px: float) -> np.ndarray | None:
+    """The printed (dark) quadrilateral near a prediction of its corners ``uv_pred`` (4, 2), in
+    the same order: the dark regions of an Otsu threshold around it, outlined, reduced to
+    convex quadrilaterals of about the predicted area, the one whose corners lie nearest the
+    prediction (each within ``search_px``), its corners refined by ``cornerSubPix``. None when
+    there is none. For re-acquiring the target when its corners' templates miss (the pose has
+    drifted further than their search ellipses)."""
+    uv_pred = np.asarray(uv_pred, float)
+    if uv_pred.shape != (4, 2) or not np.isfinite(uv_pred).all():
+        return None
+    h, w = grey.shape[:2]
+    lo = np.maximum(np.floor(uv_pred.min(axis=0) - search_px - 4), 0).astype(int)
+    hi = np.minimum(np.ceil(uv_pred.max(axis=0) + search_px + 4).astype(int) + 1, (w, h))
+    if (hi - lo).min() < 16:
+        return None
+    win = np.clip(np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float32), 0, 255).astype(np.uint8)
+    _, dark = cv2.threshold(win, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
+    contours, _ = cv2.findContours(dark, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    d1, d2 = uv_pred[2] - uv_pred[0], uv_pred[3] - uv_pred[1]
+    area = 0.5 * abs(d1[0] * d2[1] - d1[1] * d2[0])          # a quadrilateral's, from its diagonals
+    best, best_d = None, np.inf
+    for c in contours:
+        if not 0.4 * area <= cv2.contourArea(c) <= 2.5 * area:
+            continue
+        poly = cv2.approxPolyDP(c, 0.04 * cv2.arcLength(c, True), True)
+        if len(poly) != 4 or not cv2.isContourConvex(poly):
+            continue
+        q = poly.reshape(4, 2).astype(float) + lo
+        for order in (q, q[::-1]):                      # either direction round, any first corner
+            for k in range(4):
+                d = np.linalg.norm(np.roll(order, -k, axis=0) - uv_pred, axis=1)
+                if d.max() <= search_px and d.sum() < best_d:
+                    best, best_d = np.roll(order, -k, axis=0), d.sum()
+    if best is None:
+        return None
+    p = best.reshape(-1, 1, 2).astype(np.float32)
+    cv2.cornerSubPix(np.ascontiguousarray(grey, np.float32), p, (3, 3), (-1, -1),
+                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 0.01))
+    return p.reshape(4, 2).astype(float)
 
 
 def _pose_residuals(cam: CameraIntrinsics, xyz, uv, R_wc, r) -> np.ndarray:

@@ -48,13 +48,14 @@ from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point
                      innovation_covariances)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
-from .motion import f_and_dfdx, predict as predict_cv
+from .motion import f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
 from .quaternion import quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
-from .startup import PoseHypothesis, RefinedTarget, SlamStartError, refine_by_edges, start_hypotheses
+from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, pose_hypotheses,
+                      refine_by_edges, start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX,
                     SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -153,6 +154,8 @@ class FrameStats:
     imu: bool = False             # predicted through the IMU
     lost: bool = False
     relocalised: bool = False
+    retried: bool = False         # searched again with a larger motion impulse (_Track._measure)
+    reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target)
     skipped: str = ""
 
 
@@ -169,7 +172,10 @@ class _Track:
         self.localised = localised
         self.score = 0.0
         self.last: SearchView | None = None
+        self.retry_dt: float | None = None       # this frame's prediction interval when a retry may grow it
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
+        self.target_seen = 0                     # the last frame the target's corners were matched
+        self.target_missed = 0                   # frames since, with all four predicted in view
 
     @property
     def lost(self) -> bool:
@@ -219,6 +225,7 @@ class _Track:
                 st.relocalised = self._relocalise(g)
         if s.warp != "known" and frame % s.normals_every == 0:
             self._normals_from_map()        # neighbours' planes change slowly: every few frames
+        self.retry_dt = None if lost or st.imu else t - t_prev
         self._measure(g, st, frame)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
@@ -230,6 +237,8 @@ class _Track:
                 self.low_matches += 1
                 return
             self.localised = True
+        elif s.reacquire_after > 0:
+            self._watch_target(g, st, frame)
         if s.features == "particles":
             self._refine_rays(g, st, frame)
         else:
@@ -335,6 +344,20 @@ class _Track:
         warp = np.array([slam.warped(f) for f in feats], bool)
         z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
                                      s.match_score, s.max_search_area_px)
+        if self.retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched \
+                and found.sum() < s.retry_found_fraction * m:
+            # Most features missed their ellipses: a jerk the constant-velocity model did not
+            # allow for (a fast turn's start or stop). The prediction's impulse is taken
+            # retry_noise_gain times larger and the frame searched again in the grown ellipses.
+            self._grow_impulse(self.retry_dt, s.retry_noise_gain)
+            pred, S, r_scale, visible = self._select()
+            st.predicted, st.retried = visible, True
+            m = len(pred.ks)
+            feats = [self.features[k] for k in pred.ks]
+            Y = self.world_points()[pred.ks] if m else np.zeros((0, 3))
+            warp = np.array([slam.warped(f) for f in feats], bool)
+            z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
+                                         s.match_score, s.max_search_area_px)
         z[~found] = np.nan
         if s.known_edges:
             self._known_by_edges(g, feats, z)
@@ -383,6 +406,14 @@ class _Track:
         self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
         return visible
 
+    def _grow_impulse(self, dt: float, gain: float) -> None:
+        """The camera block's covariance as if the constant-velocity prediction over ``dt`` had
+        taken impulses ``gain`` times larger: ``G P_n G^T`` added ``gain^2 - 1`` times more."""
+        cd = self.state.cam_dim
+        _, _, G = f_and_dfdx_dfdn(self.state.x[:cd], dt)
+        extra = G @ noise_covariance(dt, self.slam.cfg, math.sqrt(gain * gain - 1.0)) @ G.T
+        self.state.P[:cd, :cd] += 0.5 * (extra + extra.T)
+
     def _votes(self, ks: np.ndarray) -> np.ndarray:
         """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature)."""
         return np.array([self.features[k].reliability for k in ks], float)
@@ -402,6 +433,62 @@ class _Track:
         edged = refine_by_edges(self.slam.cam, g, quad)
         if edged is not None:
             z[rows] = edged
+
+    def _watch_target(self, g: np.ndarray, st: FrameStats, frame: int) -> None:
+        """The target's four corners predicted in view and not matched for ``reacquire_after``
+        frames: the pose has drifted beyond their search ellipses (a long look away, a fast turn
+        the motion model missed), and the natural map, made from the drifting pose, agrees with
+        it. The printed quadrilateral is sought near its prediction; found, and fitting one pose
+        as at the start, the camera is put back at that pose (a re-localisation against the
+        target) and the features first seen since the target was last matched, placed from the
+        drifted poses, are removed."""
+        slam = self.slam
+        s, target = slam.settings, slam.refined_target
+        if target is None or len(target.xyz) != 4 or self.last is None:
+            return
+        rows = [j for j, i in enumerate(self.last.ids) if i < 4 and self.features[self.last.ks[j]].known]
+        if len(rows) == 4 and self.last.used[rows].sum() >= 3:
+            self.target_seen, self.target_missed = frame, 0
+            return
+        if len(rows) < 4 or self.last.used[rows].sum() > 1:
+            self.target_missed = 0          # not all in view, or partly matched: no evidence of drift
+            return
+        self.target_missed += 1
+        if self.target_missed < s.reacquire_after:
+            return
+        self.target_missed = 0              # found or not, look again only after as many frames
+        rows.sort(key=lambda j: self.last.ids[j])
+        uv_pred = self.last.uv[rows]
+        diag = max(np.linalg.norm(uv_pred[2] - uv_pred[0]), np.linalg.norm(uv_pred[3] - uv_pred[1]))
+        quad = find_quadrilateral(g, uv_pred, s.reacquire_search * diag)
+        if quad is None:
+            return
+        edged = refine_by_edges(slam.cam, g, quad)
+        quad = quad if edged is None else edged
+        # Found where the filter's own uncertainty allows (the templates missed for blur or
+        # shading, not for drift): nothing to correct.
+        nu = quad - uv_pred
+        d2 = float(np.einsum("ni,nij,nj->", nu, np.linalg.inv(self.last.S[rows]), nu))
+        if d2 < s.reacquire_chi2:
+            return
+        try:
+            hyps = pose_hypotheses(slam.cam, target.xyz, quad, s.start_pixel_sigma, s.ambiguity_ratio)
+        except SlamStartError:
+            return
+        hyps = [h for h in hyps if h.rms_px <= s.start_max_rms_px]
+        if not hyps:
+            return
+        R_now = quat_to_rotation(self.state.x[3:7])
+        hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))   # of a planar pair, the nearer
+        slam.restart_camera(self.state, hyp)
+        drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
+        if drifted:
+            self.state.remove_features(drifted)
+            for k in reversed(drifted):
+                del self.features[k]
+            st.deleted += len(drifted)
+        st.reacquired = True
+        self.target_seen = frame
 
     # ------------------------------------------------------------------ map management
     def _convert(self, st: FrameStats) -> None:
