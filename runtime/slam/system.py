@@ -333,32 +333,36 @@ class _Track:
         pick = np.lexsort((-priority, key))[:n]
         return idx[np.sort(pick)]
 
+    def _search(self, g: np.ndarray) -> tuple[Prediction, np.ndarray, np.ndarray, int, list, np.ndarray]:
+        """The features chosen this frame (_select: prediction, innovation covariances, noise
+        scales, how many predicted visible) and their matches in ``g``: z (m, 2) NaN where not
+        found."""
+        slam = self.slam
+        s = slam.settings
+        pred, S, r_scale, visible = self._select()
+        feats = [self.features[k] for k in pred.ks]
+        Y = self.world_points()[pred.ks] if len(feats) else np.zeros((0, 3))
+        warp = np.array([slam.warped(f) for f in feats], bool)
+        z, _, found = match_features(g, feats, warp, Y, self.state.x_v, slam.cam, pred.uv, S,
+                                     s.match_score, s.max_search_area_px)
+        z[~found] = np.nan
+        return pred, S, r_scale, visible, feats, z
+
     def _measure(self, g: np.ndarray, st: FrameStats, frame: int) -> int:
         slam = self.slam
         s, cam = slam.settings, slam.cam
-        pred, S, r_scale, visible = self._select()
-        st.predicted = visible
+        pred, S, r_scale, visible, feats, z = self._search(g)
         m = len(pred.ks)
-        feats = [self.features[k] for k in pred.ks]
-        Y = self.world_points()[pred.ks] if m else np.zeros((0, 3))
-        warp = np.array([slam.warped(f) for f in feats], bool)
-        z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
-                                     s.match_score, s.max_search_area_px)
         if self.retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched \
-                and found.sum() < s.retry_found_fraction * m:
+                and np.isfinite(z).all(axis=1).sum() < s.retry_found_fraction * m:
             # Most features missed their ellipses: a jerk the constant-velocity model did not
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses.
             self._grow_impulse(self.retry_dt, s.retry_noise_gain)
-            pred, S, r_scale, visible = self._select()
-            st.predicted, st.retried = visible, True
+            pred, S, r_scale, visible, feats, z = self._search(g)
             m = len(pred.ks)
-            feats = [self.features[k] for k in pred.ks]
-            Y = self.world_points()[pred.ks] if m else np.zeros((0, 3))
-            warp = np.array([slam.warped(f) for f in feats], bool)
-            z, _, found = match_features(g, feats, warp, Y, self.state.x_v, cam, pred.uv, S,
-                                         s.match_score, s.max_search_area_px)
-        z[~found] = np.nan
+            st.retried = True
+        st.predicted = visible
         if s.known_edges:
             self._known_by_edges(g, feats, z)
         for f in feats:
