@@ -56,7 +56,7 @@ from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, pose_hypotheses,
                       refine_by_edges, start_hypotheses)
-from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX,
+from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX, W_SLICE,
                     SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
@@ -484,7 +484,12 @@ class _Track:
             return
         R_now = quat_to_rotation(self.state.x[3:7])
         hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))   # of a planar pair, the nearer
+        turning = self.state.x[W_SLICE].copy()
         slam.restart_camera(self.state, hyp)
+        # A turn goes on (the templates often miss in one): the filter's angular velocity, which
+        # the drift leaves nearly right, is a better guess than rest; its linear velocity is the
+        # drift's own and is reset with the pose.
+        self.state.x[W_SLICE] = turning
         drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
         if drifted:
             self.state.remove_features(drifted)
