@@ -7,9 +7,11 @@ pixels are clicks 2-3 px off. Camera only, as the issue's reference system.
 Scenarios: ``desk-handheld`` (10 s, the target always in view) and ``desk-gaze-away`` (the gaze
 leaves the target from 3.5 s to 6.5 s, only the desk's natural features hold the pose, then
 comes back). Reports per seed the ATE RMSE without alignment (the target fixes the frame), the
-frames lost, and the median and worst over the seeds. Nothing here was used to choose a setting.
+frames lost, and the median and worst over the seeds. Seeds 1, 11 and 23 were looked into while
+the retry after a jerk and the target's re-acquisition were made (system.py); the default, 30-34,
+came after and took part in nothing (benchmarks/NOTES.md).
 
-``python benchmarks/bench_slam_desk.py [--seeds 0,1,2,3,4] [--jobs 2]``; sequences are kept in
+``python benchmarks/bench_slam_desk.py [--seeds 30,31,32,33,34] [--jobs 2]``; sequences are kept in
 ``$WVR_BENCH_CACHE`` (default benchmarks/.cache) as ``desk-<scenario>-s<seed>``.
 """
 
@@ -80,7 +82,7 @@ def _job(args):
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--seeds", default="0,1,2,3,4")
+    p.add_argument("--seeds", default="30,31,32,33,34", help="desk seeds (scene, motion and images)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
     p.add_argument("--jobs", type=int, default=1)
     a = p.parse_args()
