@@ -56,8 +56,8 @@ from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, pose_hypotheses,
                       refine_by_edges, start_hypotheses)
-from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX, W_SLICE,
-                    SlamNumericalError, State, check_covariance)
+from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
+                    TD_INDEX, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
 __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
@@ -172,7 +172,6 @@ class _Track:
         self.localised = localised
         self.score = 0.0
         self.last: SearchView | None = None
-        self.retry_dt: float | None = None       # this frame's prediction interval when a retry may grow it
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
@@ -225,8 +224,7 @@ class _Track:
                 st.relocalised = self._relocalise(g)
         if s.warp != "known" and frame % s.normals_every == 0:
             self._normals_from_map()        # neighbours' planes change slowly: every few frames
-        self.retry_dt = None if lost or st.imu else t - t_prev
-        self._measure(g, st, frame)
+        self._measure(g, st, frame, retry_dt=None if lost or st.imu else t - t_prev)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
                 self.state.x, self.state.P = saved
@@ -348,17 +346,19 @@ class _Track:
         z[~found] = np.nan
         return pred, S, r_scale, visible, feats, z
 
-    def _measure(self, g: np.ndarray, st: FrameStats, frame: int) -> int:
+    def _measure(self, g: np.ndarray, st: FrameStats, frame: int, retry_dt: float | None = None) -> int:
+        """Search, RANSAC and update for this frame; ``retry_dt`` : the constant-velocity
+        prediction's interval, s, when a frame most searches miss may be searched again."""
         slam = self.slam
         s, cam = slam.settings, slam.cam
         pred, S, r_scale, visible, feats, z = self._search(g)
         m = len(pred.ks)
-        if self.retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched \
+        if retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched \
                 and np.isfinite(z).all(axis=1).sum() < s.retry_found_fraction * m:
             # Most features missed their ellipses: a jerk the constant-velocity model did not
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses.
-            self._grow_impulse(self.retry_dt, s.retry_noise_gain)
+            self._grow_impulse(retry_dt, s.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self._search(g)
             m = len(pred.ks)
             st.retried = True
@@ -450,7 +450,7 @@ class _Track:
         s, target = slam.settings, slam.refined_target
         if target is None or len(target.xyz) != 4 or self.last is None:
             return
-        rows = [j for j, i in enumerate(self.last.ids) if i < 4 and self.features[self.last.ks[j]].known]
+        rows = [j for j, k in enumerate(self.last.ks) if self.features[k].known]
         if len(rows) == 4 and self.last.used[rows].sum() >= 3:
             self.target_seen, self.target_missed = frame, 0
             return
@@ -482,7 +482,7 @@ class _Track:
         hyps = [h for h in hyps if h.rms_px <= s.start_max_rms_px]
         if not hyps:
             return
-        R_now = quat_to_rotation(self.state.x[3:7])
+        R_now = quat_to_rotation(self.state.x[Q_SLICE])
         hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))   # of a planar pair, the nearer
         turning = self.state.x[W_SLICE].copy()
         slam.restart_camera(self.state, hyp)
@@ -492,10 +492,7 @@ class _Track:
         self.state.x[W_SLICE] = turning
         drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
         if drifted:
-            self.state.remove_features(drifted)
-            for k in reversed(drifted):
-                del self.features[k]
-            st.deleted += len(drifted)
+            self._remove(drifted, st)
         st.reacquired = True
         self.target_seen = frame
 
@@ -545,11 +542,14 @@ class _Track:
                                   np.array([f.id in self.in_view_ids for f in fs], bool), state.kinds[keep] == POINT)
             bad += keep[victims].tolist()
         if bad:
-            bad = sorted(set(bad))
-            state.remove_features(bad)
-            for k in reversed(bad):
-                del self.features[k]
-            st.deleted += len(bad)
+            self._remove(sorted(set(bad)), st)
+
+    def _remove(self, ks: list[int], st: FrameStats) -> None:
+        """Features ``ks`` (ascending) out of the state and the map, counted in ``st``."""
+        self.state.remove_features(ks)
+        for k in reversed(ks):
+            del self.features[k]
+        st.deleted += len(ks)
 
     def _occupied(self) -> np.ndarray:
         """Pixels new features keep away from: where every feature is predicted, except those

@@ -161,6 +161,14 @@ def look_at(eye, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return np.column_stack([x, y, z])
 
 
+def viewpoint(dist: float, elevation_deg: float, azimuth_deg: float = -80.0) -> tuple[np.ndarray, np.ndarray]:
+    """(R_world_cam, r): a camera ``dist`` m from the origin (a target's centre on the plane
+    z = 0) at ``elevation_deg`` above that plane (90: frontal), looking at it."""
+    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
+    r = dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return look_at(r, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), r
+
+
 def rectangle(width: float, height: float, centre=(0.0, 0.0)) -> np.ndarray:
     """(4, 3) corners of a rectangle on the world plane z = 0, m."""
     cx, cy = centre

@@ -24,14 +24,8 @@ RECT = st.rectangle(0.21, 0.15)
 CARD_MARGIN = 0.03
 
 
-def viewpoint(dist: float, elevation_deg: float, azimuth_deg: float = -80.0):
-    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
-    r = dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    return st.look_at(r, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), r
-
-
 def view(dist, el, az=-80.0):
-    R, r = viewpoint(dist, el, az)
+    R, r = st.viewpoint(dist, el, az)
     return st.render_target_scene(CAM, R, r, RECT, card_margin=CARD_MARGIN, background=st.texture(1)), \
         st.pixels(CAM, R, r, RECT), (R, r)
 
@@ -82,7 +76,7 @@ def test_a_jerk_the_motion_model_missed_is_searched_again_with_larger_impulses()
     focal length, beyond the ellipses the constant-velocity model's 6 rad/s^2 allows; the frame
     is searched again in grown ellipses and the turn measured, where without the retry the
     matches fail and the estimate stays behind."""
-    R0, r0 = viewpoint(0.6, 60.0)
+    R0, r0 = st.viewpoint(0.6, 60.0)
     img0 = st.render_target_scene(CAM, R0, r0, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
     from scipy.spatial.transform import Rotation
     R1 = R0 @ Rotation.from_rotvec([0.0, 0.03, 0.0]).as_matrix()          # a pan, in the camera frame

@@ -25,18 +25,10 @@ RECT = st.rectangle(0.21, 0.15)
 CARD_MARGIN = 0.03
 
 
-def viewpoint(dist: float, elevation_deg: float, azimuth_deg: float = -80.0) -> tuple[np.ndarray, np.ndarray]:
-    """(R_world_cam, r): a camera ``dist`` m from the target's centre at ``elevation_deg`` above
-    its plane (90: frontal), looking at it."""
-    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
-    r = dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    return st.look_at(r, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), r
-
-
 VIEWS = {
-    "near oblique": viewpoint(0.45, 50.0),        # 0.45 m, 40 degrees from frontal
-    "far oblique": viewpoint(1.3, 55.0, -60.0),
-    "far frontal": viewpoint(1.3, 87.0),          # 1.3 m, 3 degrees from frontal: ~80 px wide
+    "near oblique": st.viewpoint(0.45, 50.0),        # 0.45 m, 40 degrees from frontal
+    "far oblique": st.viewpoint(1.3, 55.0, -60.0),
+    "far frontal": st.viewpoint(1.3, 87.0),          # 1.3 m, 3 degrees from frontal: ~80 px wide
 }
 
 
@@ -282,7 +274,7 @@ def test_the_sides_follow_a_distorted_lens(lens):
     from runtime.slam.startup import refine_by_edges
 
     cam = st.CAMERAS[lens]
-    R, r = viewpoint(0.5, 60.0)
+    R, r = st.viewpoint(0.5, 60.0)
     img = st.render_target_scene(cam, R, r, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
     uv = st.pixels(cam, R, r, RECT)
     ref = refine_clicks(img, Target(RECT, clicks(uv, np.random.default_rng(3))), S.click_search_px)
@@ -304,11 +296,11 @@ def test_the_target_is_measured_by_its_sides_every_frame(move):
     from runtime.slam.config import DEFAULT_CONFIG
 
     def measured(edges: bool) -> np.ndarray:
-        R0, r0 = viewpoint(0.6, 60.0)
+        R0, r0 = st.viewpoint(0.6, 60.0)
         img0 = st.render_target_scene(CAM, R0, r0, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
         slam = MonoSLAM(CAM, DEFAULT_CONFIG, replace(S, known_edges=edges), imu=False)
         slam.start(img0, 0.0, Target(RECT, st.pixels(CAM, R0, r0, RECT) + 1.5))
-        R1, r1 = viewpoint(0.6 + move[0], 60.0 + move[1], -80.0 + move[2])
+        R1, r1 = st.viewpoint(0.6 + move[0], 60.0 + move[1], -80.0 + move[2])
         slam.process(st.render_target_scene(CAM, R1, r1, RECT, card_margin=CARD_MARGIN, background=st.texture(1)),
                      1 / 30)
         last = slam.track.last
