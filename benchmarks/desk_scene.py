@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.camera import CameraIntrinsics, project, save_camera, unproject
+from kinematics.camera import CameraIntrinsics, project, unproject
+from runtime.sequence import SequenceWriter, Target
 
 TEXEL_M = 0.0015            # texture resolution, m per texel
 
@@ -308,38 +309,31 @@ class HandHeld:
 def write_sequence(out: Path, cam: CameraIntrinsics, scene: DeskScene, motion: HandHeld, seconds: float,
                    seed: int, fps: float = 30.0, exposure_s: float = 0.008, noise_grey: float = 2.0,
                    click_px: tuple = (2.0, 3.0)) -> Path:
-    """A sequence in ``formats.md``'s layout: grey PNGs (sensor noise, motion blur over the
-    exposure, an auto-exposure's slow gain and one step), groundtruth.txt, camera.toml and a
-    target.toml whose pixels are clicks ``click_px`` px off the truth."""
+    """A sequence in ``formats.md``'s layout (runtime.sequence.SequenceWriter): grey PNGs
+    (sensor noise, motion blur over the exposure, an auto-exposure's slow gain and one step),
+    groundtruth.txt, camera.toml and a target.toml whose pixels are clicks ``click_px`` px off
+    the truth."""
     rng = np.random.default_rng(30_000 + seed)
-    out = Path(out)
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    save_camera(cam, out / "camera.toml")
     ren = Renderer(cam, scene)
     n = int(round(seconds * fps))
     step_t, step = rng.uniform(0.3, 0.7) * seconds, rng.choice([-1, 1]) * rng.uniform(0.12, 0.2)
     gain_w = (rng.uniform(0.03, 0.06), rng.uniform(0.1, 0.3), rng.uniform(0, 2 * np.pi))
-    lines, gt = [], []
-    for i in range(n):
-        t = i / fps
-        inst = t - exposure_s / 2 + exposure_s * (np.arange(len(ren.rays)) + 0.5) / len(ren.rays)
-        img = ren.render([motion.pose(s) for s in inst])
-        gain = 1.0 + gain_w[0] * np.sin(2 * np.pi * gain_w[1] * t + gain_w[2])
-        gain *= 1.0 + step * np.clip((t - step_t) / 0.3, 0.0, 1.0)
-        img = img * gain + rng.normal(0.0, noise_grey, img.shape)
-        name = f"rgb/{t:.6f}.png"
-        cv2.imwrite(str(out / name), np.clip(np.round(img), 0, 255).astype(np.uint8))
-        lines.append(f"{t:.6f} {name}\n")
-        R, r = motion.pose(t)
-        q = Rotation.from_matrix(R).as_quat()
-        gt.append(f"{t:.6f} " + " ".join(f"{v:.9f}" for v in (*r, *q)) + "\n")
-    (out / "rgb.txt").write_text("# timestamp filename\n" + "".join(lines))
-    (out / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "".join(gt))
-    R, r = motion.pose(0.0)
-    uv = project(cam, (scene.target_xyz - r) @ R)
-    ang = rng.uniform(0, 2 * np.pi, 4)
-    clicks = uv + rng.uniform(*click_px, (4, 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
-    (out / "target.toml").write_text("".join(
-        f"[[point]]\nxyz = [{X[0]:.6f}, {X[1]:.6f}, {X[2]:.6f}]\nuv = [{u[0]:.2f}, {u[1]:.2f}]\n\n"
-        for X, u in zip(scene.target_xyz, clicks)))
-    return out
+    with SequenceWriter(out, cam) as w:
+        for i in range(n):
+            t = i / fps
+            inst = t - exposure_s / 2 + exposure_s * (np.arange(len(ren.rays)) + 0.5) / len(ren.rays)
+            img = ren.render([motion.pose(s) for s in inst])
+            gain = 1.0 + gain_w[0] * np.sin(2 * np.pi * gain_w[1] * t + gain_w[2])
+            gain *= 1.0 + step * np.clip((t - step_t) / 0.3, 0.0, 1.0)
+            img = img * gain + rng.normal(0.0, noise_grey, img.shape)
+            w.add_frame(t, np.clip(np.round(img), 0, 255).astype(np.uint8))
+            R, r = motion.pose(t)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, r
+            w.add_groundtruth(t, T)
+        R, r = motion.pose(0.0)
+        uv = project(cam, (scene.target_xyz - r) @ R)
+        ang = rng.uniform(0, 2 * np.pi, 4)
+        clicks = uv + rng.uniform(*click_px, (4, 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
+        w.set_target(Target(scene.target_xyz, clicks))
+    return Path(out)
