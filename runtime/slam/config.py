@@ -139,6 +139,13 @@ class MapSettings:
     reacquire_after: int = 3             # frames the whole target is predicted in view and missed before it is sought (0: never)
     reacquire_search: float = 0.5        # sought this far from its prediction, a fraction of its diagonal
     reacquire_chi2: float = 26.1         # found farther than this from the prediction (chi2, 8 dof, 99.9%): the pose had drifted
+    loop_after: int = 15                 # frames without the target matched before the whole image is searched for it (0: never)
+    loop_every: int = 5                  # and then every this many frames
+    loop_min_area_px: float = 150.0      # its smallest quadrilateral, px^2
+    loop_max_turn_rad: float = 0.8       # its pose's rotation this near the filter's (and not the half-turn)
+    loop_trials: int = 2                 # candidate poses checked against the map (the most rectangle-like first)
+    loop_min_old: int = 4                # natural features from before the target was lost matched at its pose,
+    loop_window_px: float = 8.0          # and half of those in view, each this near where it puts them
     # -- start-up from the known target --
     target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
     known_sigma_px: float = 0.25         # a target corner's measurement, px (its sides: 0.04-0.26 px off)

@@ -16,7 +16,8 @@ corners nearly as well (likelihood ratio under ``ambiguity_ratio``), both are ke
 until the map separates them (system.py).
 
 The same target is sought again later when the pose has drifted beyond its corners' search
-ellipses (:func:`find_quadrilateral`, used by system.py's re-acquisition).
+ellipses: near its prediction (:func:`find_quadrilateral`) or anywhere in the image
+(:func:`locate_target`), for system.py's re-acquisition.
 """
 
 from __future__ import annotations
@@ -239,6 +240,30 @@ def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> 
     return out
 
 
+def _dark_quadrilaterals(grey: np.ndarray, lo: np.ndarray, hi: np.ndarray, min_area: float, max_area: float
+                         ) -> list[np.ndarray]:
+    """The dark convex quadrilaterals (each (4, 2) px, image coordinates) of an Otsu threshold of
+    ``grey``'s window [lo, hi), with areas in [min_area, max_area] px^2."""
+    win = np.clip(np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float32), 0, 255).astype(np.uint8)
+    _, dark = cv2.threshold(win, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
+    contours, _ = cv2.findContours(dark, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    quads = []
+    for c in contours:
+        if not min_area <= cv2.contourArea(c) <= max_area:
+            continue
+        poly = cv2.approxPolyDP(c, 0.04 * cv2.arcLength(c, True), True)
+        if len(poly) == 4 and cv2.isContourConvex(poly):
+            quads.append(poly.reshape(4, 2).astype(float) + lo)
+    return quads
+
+
+def _subpixel(grey: np.ndarray, quad: np.ndarray) -> np.ndarray:
+    p = quad.reshape(-1, 1, 2).astype(np.float32)
+    cv2.cornerSubPix(np.ascontiguousarray(grey, np.float32), p, (3, 3), (-1, -1),
+                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 0.01))
+    return p.reshape(4, 2).astype(float)
+
+
 def find_quadrilateral(grey: np.ndarray, uv_pred: np.ndarray, search_px: float) -> np.ndarray | None:
     """The printed (dark) quadrilateral near a prediction of its corners ``uv_pred`` (4, 2), in
     the same order: the dark regions of an Otsu threshold around it, outlined, reduced to
@@ -254,30 +279,94 @@ def find_quadrilateral(grey: np.ndarray, uv_pred: np.ndarray, search_px: float) 
     hi = np.minimum(np.ceil(uv_pred.max(axis=0) + search_px + 4).astype(int) + 1, (w, h))
     if (hi - lo).min() < 16:
         return None
-    win = np.clip(np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float32), 0, 255).astype(np.uint8)
-    _, dark = cv2.threshold(win, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
-    contours, _ = cv2.findContours(dark, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     d1, d2 = uv_pred[2] - uv_pred[0], uv_pred[3] - uv_pred[1]
     area = 0.5 * abs(d1[0] * d2[1] - d1[1] * d2[0])          # a quadrilateral's, from its diagonals
     best, best_d = None, np.inf
-    for c in contours:
-        if not 0.4 * area <= cv2.contourArea(c) <= 2.5 * area:
-            continue
-        poly = cv2.approxPolyDP(c, 0.04 * cv2.arcLength(c, True), True)
-        if len(poly) != 4 or not cv2.isContourConvex(poly):
-            continue
-        q = poly.reshape(4, 2).astype(float) + lo
+    for q in _dark_quadrilaterals(grey, lo, hi, 0.4 * area, 2.5 * area):
         for order in (q, q[::-1]):                      # either direction round, any first corner
             for k in range(4):
                 d = np.linalg.norm(np.roll(order, -k, axis=0) - uv_pred, axis=1)
                 if d.max() <= search_px and d.sum() < best_d:
                     best, best_d = np.roll(order, -k, axis=0), d.sum()
-    if best is None:
-        return None
-    p = best.reshape(-1, 1, 2).astype(np.float32)
-    cv2.cornerSubPix(np.ascontiguousarray(grey, np.float32), p, (3, 3), (-1, -1),
-                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 0.01))
-    return p.reshape(4, 2).astype(float)
+    return None if best is None else _subpixel(grey, best)
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """A dark quadrilateral fitted as the target: R_world_cam (3, 3), r (3,) m, the corners uv
+    (4, 2) px in the target's order, and how print-like it is (:func:`_print_contrast`)."""
+
+    R_world_cam: np.ndarray
+    r: np.ndarray
+    uv: np.ndarray
+    contrast: float
+
+
+def locate_target(grey: np.ndarray, cam: CameraIntrinsics, xyz: np.ndarray, R_near: np.ndarray,
+                  max_turn_rad: float, max_rms_px: float, min_area_px: float, max_quads: int = 4) -> list[Sighting]:
+    """The printed rectangle ``xyz`` (4, 3) sought anywhere in the image, with no prediction of
+    where: the dark convex quadrilaterals of at least ``min_area_px``, the ``max_quads`` most
+    print-like (dark inside, light around), each in its four cyclic corner orders (the winding
+    the target shows from ``R_near``'s side) fitted by planar PnP; per quadrilateral the pose kept that fits within ``max_rms_px`` with its rotation
+    nearest ``R_near`` (R_world_cam, the filter's) and within ``max_turn_rad`` of it, which also
+    settles the rectangle's half-turn symmetry. Any dark rectangle of about the right shape fits
+    some pose (four corners leave two residual degrees of freedom), so these are candidates for
+    the caller to confirm, the most print-like first."""
+    h, w = grey.shape[:2]
+    quads = _dark_quadrilaterals(grey, np.zeros(2, int), np.array([w, h]), min_area_px, 0.5 * w * h)
+    ranked = sorted(((_print_contrast(grey, q), q) for q in quads), key=lambda c: -c[0])
+    # Seen from the side R_near looks at it from, the corners wind one way round in the image:
+    # each quadrilateral is taken in that direction, leaving its four cyclic orders.
+    centre = xyz.mean(axis=0)
+    virtual = (xyz - (centre - R_near[:, 2])) @ R_near
+    winding = np.sign(_signed_area(virtual[:, :2] / virtual[:, 2:3]))
+    found = []
+    for contrast, q in ranked[:max_quads]:
+        q = _subpixel(grey, q)
+        if np.sign(_signed_area(q)) != winding:
+            q = q[::-1].copy()
+        xy = undistort(cam, q)
+        if not np.isfinite(xy).all():
+            continue
+        best, best_turn = None, max_turn_rad
+        for k in range(4):
+            idx = np.roll(np.arange(4), -k)
+            for R_wc, r in _planar_poses(xyz, xy[idx]):
+                turn = math.acos(min(max(0.5 * (float(np.einsum("ij,ij->", R_near, R_wc)) - 1.0), -1.0), 1.0))
+                if turn >= best_turn or np.any((xyz - r) @ R_wc[:, 2] <= 0):
+                    continue
+                res = _pose_residuals(cam, xyz, q[idx], R_wc, r)
+                if np.isfinite(res).all() and np.sqrt(np.mean(res**2)) * math.sqrt(2) <= max_rms_px:
+                    best, best_turn = Sighting(R_wc, r, q[idx], contrast), turn
+        if best is not None:
+            found.append(best)
+    return found
+
+
+def _signed_area(p: np.ndarray) -> float:
+    """The shoelace area of a polygon (n, 2), positive one way round."""
+    return 0.5 * float(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
+
+
+def _print_contrast(grey: np.ndarray, quad: np.ndarray) -> float:
+    """How much a quadrilateral (4, 2) px looks printed: the step from its inside to a ring
+    around it over their spread, ``(mean_ring - mean_in) / (sd_in + sd_ring + 1)`` (grey
+    levels); a flat dark print on a light card scores over ten, a dark patch of texture a few."""
+    h, w = grey.shape[:2]
+    size = max(np.ptp(quad[:, 0]), np.ptp(quad[:, 1]))
+    pad = max(2, int(round(0.06 * size)))
+    lo = np.maximum(np.floor(quad.min(axis=0)).astype(int) - 2 * pad, 0)
+    hi = np.minimum(np.ceil(quad.max(axis=0)).astype(int) + 2 * pad + 1, (w, h))
+    win = np.asarray(grey[lo[1]:hi[1], lo[0]:hi[0]], np.float32)
+    mask = np.zeros(win.shape, np.uint8)
+    cv2.fillConvexPoly(mask, np.round(quad - lo).astype(np.int32), 1)
+    kernel = np.ones((2 * pad + 1, 2 * pad + 1), np.uint8)
+    inner = cv2.erode(mask, kernel).astype(bool)
+    ring = cv2.dilate(mask, kernel).astype(bool) & ~mask.astype(bool)
+    if inner.sum() < 4 or ring.sum() < 4:
+        return 0.0
+    a, b = win[inner], win[ring]
+    return float((b.mean() - a.mean()) / (a.std() + b.std() + 1.0))
 
 
 def _pose_residuals(cam: CameraIntrinsics, xyz, uv, R_wc, r) -> np.ndarray:

@@ -24,6 +24,9 @@ Start-up: the known target's clicks are refined on the first image, its pose (or
 poses) found with an honest covariance (startup.py); a second pose hypothesis is tracked beside
 the first until the map separates them. A lost track is re-localised against the map in the
 map's own frame (relocalise.py); a saved map (map_io.py) starts a session lost, re-localising.
+A track that drifted without being lost is put back at the target: near its prediction when its
+corners are predicted in view and missed, and, when it has not been matched for a while, over
+the whole image, a pose found there being confirmed by the map made before it was lost.
 """
 
 from __future__ import annotations
@@ -49,13 +52,13 @@ from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
 from .motion import f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
-from .quaternion import quat_to_rotation
+from .quaternion import quat_from_rotation, quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
-from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, pose_hypotheses,
-                      refine_by_edges, start_hypotheses)
+from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
+                      pose_hypotheses, refine_by_edges, start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
                     TD_INDEX, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -155,7 +158,7 @@ class FrameStats:
     lost: bool = False
     relocalised: bool = False
     retried: bool = False         # searched again with a larger motion impulse (_Track._measure)
-    reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target)
+    reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target, _close_loop)
     skipped: str = ""
 
 
@@ -224,7 +227,11 @@ class _Track:
                 st.relocalised = self._relocalise(g)
         if s.warp != "known" and frame % s.normals_every == 0:
             self._normals_from_map()        # neighbours' planes change slowly: every few frames
-        self._measure(g, st, frame, retry_dt=None if lost or st.imu else t - t_prev)
+        away = frame - self.target_seen
+        closed = (not lost and s.reacquire_after > 0 and s.loop_after > 0 and away >= s.loop_after
+                  and (away - s.loop_after) % s.loop_every == 0 and self._close_loop(g, st, frame))
+        if not closed:
+            self._measure(g, st, frame, retry_dt=None if lost or st.imu else t - t_prev)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
                 self.state.x, self.state.P = saved
@@ -235,7 +242,7 @@ class _Track:
                 self.low_matches += 1
                 return
             self.localised = True
-        elif s.reacquire_after > 0:
+        elif s.reacquire_after > 0 and not closed:
             self._watch_target(g, st, frame)
         if s.features == "particles":
             self._refine_rays(g, st, frame)
@@ -495,6 +502,79 @@ class _Track:
             self._remove(drifted, st)
         st.reacquired = True
         self.target_seen = frame
+
+    def _close_loop(self, g: np.ndarray, st: FrameStats, frame: int) -> bool:
+        """The target unmatched for a while: sought anywhere in the image (startup.locate_target),
+        since a pose drifted far (a fast turn absorbed as a wrong velocity while only new
+        features were in view) can predict it off the image when it is back. A pose found there
+        that the filter's corner predictions do not allow is checked against the natural
+        features mapped before the target was lost: projected from that pose, at least
+        ``loop_min_old`` of them, and half of those in view, must match within
+        ``loop_window_px`` of where it puts them, which a dark rectangle elsewhere does not give
+        (features printed with the target, on its card, move with any copy of it; the rest of
+        the scene does not). Confirmed, the camera is restarted there, the features first seen
+        since the target was lost (placed from the drifting poses) removed, and the frame
+        measured. Returns whether it was."""
+        slam = self.slam
+        s, target, cam = slam.settings, slam.refined_target, slam.cam
+        if target is None or len(target.xyz) != 4:
+            return False
+        known = np.array(sorted((k for k, f in enumerate(self.features) if f.known), key=lambda k: self.features[k].id))
+        if len(known) != 4:
+            return False
+        found = locate_target(g, cam, target.xyz, quat_to_rotation(self.state.x[Q_SLICE]), s.loop_max_turn_rad,
+                              s.start_max_rms_px, s.loop_min_area_px)
+        if not found:
+            return False
+        pred = predict(self.state, known, cam)
+        S = innovation_covariances(self.state, pred, slam.cfg.sigma_pixel**2, np.ones(4)) if pred.valid.all() else None
+        old = np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen], int)
+        for seen in found[:s.loop_trials]:
+            if S is not None:
+                nu = seen.uv - pred.uv
+                if float(np.einsum("ni,nij,nj->", nu, np.linalg.inv(S), nu)) < s.reacquire_chi2:
+                    return False    # where the filter expects it: the active search will take it
+            if self._old_map_agrees(g, seen.R_world_cam, seen.r, old):
+                break
+        else:
+            return False
+        try:
+            hyps = pose_hypotheses(cam, target.xyz, seen.uv, s.start_pixel_sigma, s.ambiguity_ratio)
+        except SlamStartError:
+            return False
+        hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - seen.R_world_cam))   # the confirmed one
+        drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
+        turning = self.state.x[W_SLICE].copy()
+        slam.restart_camera(self.state, hyp)
+        # As for the local re-acquisition: a turn goes on, the drift's linear velocity does not.
+        self.state.x[W_SLICE] = turning
+        if drifted:
+            self._remove(drifted, st)
+        self._measure(g, st, frame)
+        st.reacquired = True
+        self.target_seen, self.target_missed = frame, 0
+        return True
+
+    def _old_map_agrees(self, g: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray, ks: np.ndarray) -> bool:
+        """Whether features ``ks`` match in ``g`` where the pose (R_world_cam, r) projects them: at least
+        ``loop_min_old`` of them, and half of those it puts in the image, each found within
+        ``loop_window_px`` of its projection."""
+        slam = self.slam
+        s, cam = slam.settings, slam.cam
+        if len(ks) < s.loop_min_old:
+            return False
+        Y = self.world_points()[ks]
+        uv = project_points(cam, (Y - r) @ R_world_cam)
+        inside = np.isfinite(uv).all(axis=1) & in_image(cam, np.nan_to_num(uv, nan=-1e9), margin=s.margin_px)
+        if inside.sum() < s.loop_min_old:
+            return False
+        ks, Y, uv = ks[inside], Y[inside], uv[inside]
+        feats = [self.features[k] for k in ks]
+        x_v = np.r_[r, quat_from_rotation(R_world_cam)]
+        S = np.broadcast_to(np.eye(2) * (s.loop_window_px / 3.0) ** 2, (len(ks), 2, 2)).copy()
+        _, _, found = match_features(g, feats, np.array([slam.warped(f) for f in feats], bool), Y, x_v, cam, uv, S,
+                                     s.match_score, s.max_search_area_px)
+        return int(found.sum()) >= max(s.loop_min_old, 0.5 * len(ks))
 
     # ------------------------------------------------------------------ map management
     def _convert(self, st: FrameStats) -> None:
