@@ -26,7 +26,12 @@ class SlamConfig:
     """The filter's parameters.
 
     sigma_a, sigma_alpha : constant-velocity impulses' standard deviations, m/s^2 and rad/s^2
-        (MonoSLAM's hand-held values are 4 and 6).
+        (MonoSLAM's hand-held values are 4 and 6), over a step of ``motion_noise_interval``.
+    motion_noise_interval : the step, s, those are stated for (MonoSLAM's 30 Hz frame, as the
+        twin records it). A step of ``dt`` takes impulses of variance ``sigma^2 dt
+        motion_noise_interval``, as white accelerations would: a frame dropped or skipped
+        lengthens a step without making it harder (``(sigma dt)^2`` would take a 3-frame gap as
+        9 frames' worth of variance and grow the search ellipses past searching).
     sigma_pixel : a feature measurement's standard deviation per axis, px.
     imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
         (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
@@ -48,6 +53,7 @@ class SlamConfig:
 
     sigma_a: float = 4.0
     sigma_alpha: float = 6.0
+    motion_noise_interval: float = 0.033
     sigma_pixel: float = 1.0
     imu_accel_noise: float = 0.004
     imu_gyro_noise: float = 0.0005

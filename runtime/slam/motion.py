@@ -1,9 +1,11 @@
 """MonoSLAM's constant-velocity, constant-angular-velocity motion model, its Jacobians, the
 process noise, and the EKF prediction of the camera block.
 
-In each step of ``dt`` seconds unknown white impulses ``n = (V, Omega) = dt (a, alpha)`` hit
-the camera (``a`` in the world frame, m/s^2; ``alpha`` in the camera frame, rad/s^2;
-``P_n = diag((sigma_a dt)^2 I3, (sigma_alpha dt)^2 I3)``)::
+In each step of ``dt`` seconds unknown impulses ``n = (V, Omega)`` hit the camera (``V`` in the
+world frame, m/s; ``Omega`` in the camera frame, rad/s), the integrals of white accelerations
+over the step: ``P_n = diag(sigma_a^2 dt t0 I3, sigma_alpha^2 dt t0 I3)`` with ``t0`` the step
+``sigma_a`` (m/s^2) and ``sigma_alpha`` (rad/s^2) are stated for (``motion_noise_interval``),
+where MonoSLAM's ``(sigma dt)^2`` is the same at ``dt = t0``::
 
     r_new = r + (v + V) dt
     q_new = q * q((w + Omega) dt)      (right-composition: w is in the camera frame)
@@ -79,9 +81,11 @@ def f_and_dfdx(x_v, dt: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def noise_covariance(dt: float, cfg: SlamConfig, gain: float = 1.0) -> np.ndarray:
-    """``P_n`` (6, 6) of the impulse ``n = dt (a, alpha)``."""
+    """``P_n`` (6, 6) of the impulse ``n = (V, Omega)`` over a step of ``dt`` s: variances
+    ``sigma^2 dt motion_noise_interval`` (white accelerations), times ``gain^2``."""
     dt = _check_dt(dt)
-    sa, sw = gain * cfg.sigma_a * dt, gain * cfg.sigma_alpha * dt
+    span = math.sqrt(dt * cfg.motion_noise_interval)
+    sa, sw = gain * cfg.sigma_a * span, gain * cfg.sigma_alpha * span
     return np.diag(np.r_[np.full(3, sa * sa), np.full(3, sw * sw)])
 
 

@@ -364,11 +364,18 @@ class _Track:
                 and np.isfinite(z).all(axis=1).sum() < s.retry_found_fraction * m:
             # Most features missed their ellipses: a jerk the constant-velocity model did not
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
-            # retry_noise_gain times larger and the frame searched again in the grown ellipses.
+            # retry_noise_gain times larger and the frame searched again in the grown ellipses,
+            # kept if it finds more (after a long gap the grown ellipses can pass searching).
+            cd = self.state.cam_dim
+            first, P_cam = (pred, S, r_scale, visible, feats, z), self.state.P[:cd, :cd].copy()
             self._grow_impulse(retry_dt, s.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self._search(g)
+            if np.isfinite(z).all(axis=1).sum() > np.isfinite(first[-1]).all(axis=1).sum():
+                st.retried = True
+            else:
+                pred, S, r_scale, visible, feats, z = first
+                self.state.P[:cd, :cd] = P_cam
             m = len(pred.ks)
-            st.retried = True
         st.predicted = visible
         if s.known_edges:
             self._known_by_edges(g, feats, z)

@@ -356,7 +356,9 @@ def test_process_noise_is_G_Pn_Gt_plus_the_bias_walks(cam_dim):
     x_v = st.random_camera(rng, cam_dim=cam_dim)
     G = f_and_dfdx_dfdn(x_v, DT)[2]
     Pn = noise_covariance(DT, cfg)
-    assert np.allclose(np.diag(Pn), [(2 * DT) ** 2] * 3 + [(3 * DT) ** 2] * 3)
+    t0 = cfg.motion_noise_interval
+    assert np.allclose(np.diag(Pn), [4 * DT * t0] * 3 + [9 * DT * t0] * 3)
+    assert np.allclose(np.diag(noise_covariance(t0, cfg)), [(2 * t0) ** 2] * 3 + [(3 * t0) ** 2] * 3)   # MonoSLAM's
     walks = np.zeros((cam_dim, cam_dim))
     if cam_dim >= CAMERA_DIM_BIASED:
         walks[13:16, 13:16] = np.eye(3) * 1e-6 * DT
@@ -417,6 +419,23 @@ def test_predict_equals_the_dense_prediction_and_leaves_the_features(cam_dim):
     predict(s1, DT, CFG, noise_gain=2.0)
     predict(s2, DT, SlamConfig(sigma_a=2 * CFG.sigma_a, sigma_alpha=2 * CFG.sigma_alpha))
     st.assert_close(s1.P[:13, :13], s2.P[:13, :13], 1e-12)
+
+
+def test_a_long_step_takes_the_variance_of_the_steps_it_spans():
+    """The impulses are white accelerations integrated over the step: one step over three
+    frames' time (two frames dropped) leaves the velocities as uncertain as three steps do, not
+    three times more (``(sigma dt)^2`` would), so a gap does not grow the search ellipses past
+    searching."""
+    rng = np.random.default_rng(14)
+    x_v = st.random_camera(rng, 0.5)
+    P0 = np.diag(np.r_[np.full(3, 1e-6), np.full(4, 1e-8), np.full(3, 1e-4), np.full(3, 1e-4)])
+    one, three = State.from_camera(x_v, P0.copy()), State.from_camera(x_v.copy(), P0.copy())
+    predict(one, 3 * DT, CFG)
+    for _ in range(3):
+        predict(three, DT, CFG)
+    st.assert_close(np.diag(one.P)[7:13], np.diag(three.P)[7:13], 1e-9)
+    added = np.diag(one.P)[7:10] - 1e-4
+    assert np.allclose(added, CFG.sigma_a**2 * 3 * DT * CFG.motion_noise_interval)
 
 
 def test_predict_integrates_constant_velocities_exactly():

@@ -66,7 +66,7 @@ def scene(seed: int, m: int = 30, outlier_fraction: float = 0.3, noise_px: float
     sig_y = 0.003
     for y in Y:
         s.add_feature(POINT, y, sig_y**2 * np.eye(3), np.zeros((3, s.n)))
-    predict_motion(s, 1 / 30, SlamConfig())
+    predict_motion(s, 1 / 30, SlamConfig(motion_noise_interval=1 / 30))   # the prior these scenes were drawn with
     r_true, R_true = draw_camera(s, rng)
     Y_true = Y + rng.normal(0, sig_y, Y.shape)
     ks = np.arange(m)

@@ -101,6 +101,10 @@ def test_a_jerk_the_motion_model_missed_is_searched_again_with_larger_impulses()
     stj_off, err_off = run(1.0)
     print(f"without: {stj_off.found} of {stj_off.searched} found, rotation error {1e3 * err_off:.2f} mrad")
     assert not stj_off.retried and err_off > 0.01
+    # Impulses so large that the grown ellipses pass searching (as after a long gap): the retry
+    # finds fewer and the first search stands, as if there had been none.
+    stj_huge, err_huge = run(1000.0)
+    assert not stj_huge.retried and stj_huge.searched == stj_off.searched and err_huge == err_off
 
 
 def _turned(R, deg):
