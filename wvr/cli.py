@@ -390,6 +390,8 @@ def cmd_slam(args) -> int:
           f"{r.mean_searched:.1f} searched matched per frame, {r.median_ms_per_frame:.1f} ms per frame (median)"
           + (f"; located in the map after {r.first_localised_s:.2f} s" if args.map and r.first_localised_s is not None else "")
           + (f"; track LOST for {r.lost_frames} frames" if r.lost else "")
+          + (f"; {r.frame_gaps} gaps between images (frames missing; the longest {1000 * r.longest_interval_s:.0f} ms)"
+             if r.frame_gaps else "")
           + (f"; IMU: {r.imu['gaps']} gaps, {r.imu['spikes']} spikes, {r.imu['non_finite']} bad samples"
              if r.imu.get("rows") and (r.imu["gaps"] or r.imu["spikes"] or r.imu["non_finite"]) else ""))
     if r.imu_clock_offset_s is not None:

@@ -44,6 +44,10 @@ class SlamRun:
     mean_ms_per_frame: float
     median_ms_per_frame: float
     imu_frames: int
+    #: Intervals between images longer than 1.5 frames (the median interval): frames the recorder
+    #: dropped; the prediction spans them (motion.py). The longest interval, s.
+    frame_gaps: int = 0
+    longest_interval_s: float = 0.0
     imu: dict = field(default_factory=dict)
     messages: tuple = ()
     #: The IMU's clock offset the filter ended with and its standard deviation, s (None without
@@ -210,6 +214,8 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     first = next((s.t for s in slam.stats if not s.lost), None)     # first frame in the map
     lost_frames = sum(1 for s in slam.stats if s.lost and first is not None and s.t > first) if first is not None \
         else len(slam.stats)
+    dt = np.diff(seq.timestamps[:n])
+    gaps = int((dt > 1.5 * np.median(dt)).sum()) if len(dt) else 0
     result = SlamRun(
         frames=len(slam.stats), skipped=skipped, features=len(slam.features),
         added=sum(s.added for s in slam.stats), deleted=sum(s.deleted for s in slam.stats),
@@ -221,7 +227,8 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         mean_outliers=mean([s.outliers for s in proc]),
         mean_ms_per_frame=1000 * mean([s.seconds for s in proc]),
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
-        imu_frames=sum(1 for s in proc if s.imu), imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
+        imu_frames=sum(1 for s in proc if s.imu), frame_gaps=gaps, longest_interval_s=float(dt.max()) if len(dt) else 0.0,
+        imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
         **_clock_offset(slam.state))
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
     return result

@@ -195,6 +195,26 @@ def test_a_corrupt_frame_is_skipped_counted_and_named(static_seq, tmp_path, caps
     assert_tracks(tracking(tmp_path / "out", seq), 30)
 
 
+@pytest.mark.slow
+def test_frames_the_recorder_dropped_are_counted_and_tracked_through(walk_seq, tmp_path):
+    """Runs of 2, 4 and 1 frames missing from rgb.txt (a recorder under load): the gaps are
+    counted, and the prediction spans them (white accelerations: a 5-frame step is not taken as
+    25 frames' worth of variance, whose ellipses would pass searching)."""
+    seq = copy_of(walk_seq, tmp_path)
+    lines = (seq / "rgb.txt").read_text().splitlines(keepends=True)
+    head = [ln for ln in lines if ln.startswith("#")]
+    rows = [ln for ln in lines if not ln.startswith("#")]
+    missing = {12, 13, 30, 31, 32, 33, 45}
+    (seq / "rgb.txt").write_text("".join(head + [r for i, r in enumerate(rows) if i not in missing]))
+    res = run_slam(seq, tmp_path / "out", progress=False, settings=CAMERA_ONLY)
+    t = open_sequence(walk_seq).timestamps
+    assert res.frame_gaps == 3 and res.longest_interval_s == pytest.approx(t[34] - t[29])
+    tr = tracking(tmp_path / "out", seq)
+    print(f"\nwalk with {len(missing)} frames missing: {tr}")
+    assert_tracks(tr, len(rows) - len(missing))
+    assert not res.lost
+
+
 def blacken(seq, first: int, last: int) -> None:
     for p in open_sequence(seq).paths[first:last]:
         cv2.imwrite(str(p), np.zeros_like(cv2.imread(str(p))))
