@@ -360,8 +360,8 @@ class _Track:
         s, cam = slam.settings, slam.cam
         pred, S, r_scale, visible, feats, z = self._search(g)
         m = len(pred.ks)
-        if retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched \
-                and np.isfinite(z).all(axis=1).sum() < s.retry_found_fraction * m:
+        n_found = int(np.isfinite(z).all(axis=1).sum())
+        if retry_dt and s.retry_noise_gain > 1 and m >= s.retry_min_searched and n_found < s.retry_found_fraction * m:
             # Most features missed their ellipses: a jerk the constant-velocity model did not
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses,
@@ -370,7 +370,7 @@ class _Track:
             first, P_cam = (pred, S, r_scale, visible, feats, z), self.state.P[:cd, :cd].copy()
             self._grow_impulse(retry_dt, s.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self._search(g)
-            if np.isfinite(z).all(axis=1).sum() > np.isfinite(first[-1]).all(axis=1).sum():
+            if np.isfinite(z).all(axis=1).sum() > n_found:
                 st.retried = True
             else:
                 pred, S, r_scale, visible, feats, z = first
@@ -497,18 +497,7 @@ class _Track:
         if not hyps:
             return
         R_now = quat_to_rotation(self.state.x[Q_SLICE])
-        hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))   # of a planar pair, the nearer
-        turning = self.state.x[W_SLICE].copy()
-        slam.restart_camera(self.state, hyp)
-        # A turn goes on (the templates often miss in one): the filter's angular velocity, which
-        # the drift leaves nearly right, is a better guess than rest; its linear velocity is the
-        # drift's own and is reset with the pose.
-        self.state.x[W_SLICE] = turning
-        drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
-        if drifted:
-            self._remove(drifted, st)
-        st.reacquired = True
-        self.target_seen = frame
+        self._restart_at_target(min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now)), st, frame)
 
     def _close_loop(self, g: np.ndarray, st: FrameStats, frame: int) -> bool:
         """The target unmatched for a while: sought anywhere in the image (startup.locate_target),
@@ -549,18 +538,24 @@ class _Track:
             hyps = pose_hypotheses(cam, target.xyz, seen.uv, s.start_pixel_sigma, s.ambiguity_ratio)
         except SlamStartError:
             return False
-        hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - seen.R_world_cam))   # the confirmed one
-        drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
+        self._restart_at_target(min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - seen.R_world_cam)), st, frame)
+        self._measure(g, st, frame)
+        return True
+
+    def _restart_at_target(self, hyp: PoseHypothesis, st: FrameStats, frame: int) -> None:
+        """The camera put back at the target's pose ``hyp`` (of a planar pair, the one the
+        caller chose), and the features first seen since the target was last matched, placed
+        from the drifting poses, removed. A turn goes on (the templates often miss in one): the
+        filter's angular velocity, which the drift leaves nearly right, is a better guess than
+        rest; its linear velocity is the drift's own and is reset with the pose."""
         turning = self.state.x[W_SLICE].copy()
-        slam.restart_camera(self.state, hyp)
-        # As for the local re-acquisition: a turn goes on, the drift's linear velocity does not.
+        self.slam.restart_camera(self.state, hyp)
         self.state.x[W_SLICE] = turning
+        drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
         if drifted:
             self._remove(drifted, st)
-        self._measure(g, st, frame)
         st.reacquired = True
         self.target_seen, self.target_missed = frame, 0
-        return True
 
     def _old_map_agrees(self, g: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray, ks: np.ndarray) -> bool:
         """Whether features ``ks`` match in ``g`` where the pose (R_world_cam, r) projects them: at least
