@@ -294,7 +294,7 @@ def find_quadrilateral(grey: np.ndarray, uv_pred: np.ndarray, search_px: float) 
 @dataclass(frozen=True)
 class Sighting:
     """A dark quadrilateral fitted as the target: R_world_cam (3, 3), r (3,) m, the corners uv
-    (4, 2) px in the target's order, and how print-like it is (:func:`_print_contrast`)."""
+    (4, 2) px in the target's order, and how print-like it is (:func:`print_contrast`)."""
 
     R_world_cam: np.ndarray
     r: np.ndarray
@@ -314,7 +314,7 @@ def locate_target(grey: np.ndarray, cam: CameraIntrinsics, xyz: np.ndarray, R_ne
     the caller to confirm, the most print-like first."""
     h, w = grey.shape[:2]
     quads = _dark_quadrilaterals(grey, np.zeros(2, int), np.array([w, h]), min_area_px, 0.5 * w * h)
-    ranked = sorted(((_print_contrast(grey, q), q) for q in quads), key=lambda c: -c[0])
+    ranked = sorted(((print_contrast(grey, q), q) for q in quads), key=lambda c: -c[0])
     # Seen from the side R_near looks at it from, the corners wind one way round in the image:
     # each quadrilateral is taken in that direction, leaving its four cyclic orders.
     centre = xyz.mean(axis=0)
@@ -348,7 +348,7 @@ def _signed_area(p: np.ndarray) -> float:
     return 0.5 * float(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
 
 
-def _print_contrast(grey: np.ndarray, quad: np.ndarray) -> float:
+def print_contrast(grey: np.ndarray, quad: np.ndarray) -> float:
     """How much a quadrilateral (4, 2) px looks printed: the step from its inside to a ring
     around it over their spread, ``(mean_ring - mean_in) / (sd_in + sd_ring + 1)`` (grey
     levels); a flat dark print on a light card scores over ten, a dark patch of texture a few."""

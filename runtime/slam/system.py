@@ -58,7 +58,7 @@ from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
-                      pose_hypotheses, refine_by_edges, start_hypotheses)
+                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
                     TD_INDEX, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -178,6 +178,9 @@ class _Track:
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
+        # The first frame any natural feature was mapped in (None: none yet; 0: a map given), so
+        # the whole-image search knows whether a map from before the target's loss ever existed.
+        self.first_mapped = 0 if any(not f.known for f in features) else None
 
     @property
     def lost(self) -> bool:
@@ -508,9 +511,11 @@ class _Track:
         ``loop_min_old`` of them, and half of those in view, must match within
         ``loop_window_px`` of where it puts them, which a dark rectangle elsewhere does not give
         (features printed with the target, on its card, move with any copy of it; the rest of
-        the scene does not). Confirmed, the camera is restarted there, the features first seen
-        since the target was lost (placed from the drifting poses) removed, and the frame
-        measured. Returns whether it was."""
+        the scene does not). Lost before any natural feature was mapped, there is no such map:
+        the most print-like candidate is taken if it is at least half as print-like as the
+        target was in the first image. Confirmed, the camera is restarted there, the features
+        first seen since the target was lost (placed from the drifting poses) removed, and the
+        frame measured. Returns whether it was."""
         slam = self.slam
         s, target, cam = slam.settings, slam.refined_target, slam.cam
         if target is None or len(target.xyz) != 4:
@@ -525,12 +530,20 @@ class _Track:
         pred = predict(self.state, known, cam)
         S = innovation_covariances(self.state, pred, slam.cfg.sigma_pixel**2, np.ones(4)) if pred.valid.all() else None
         old = np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen], int)
+        # Lost before any natural feature was mapped (a drift from the first frames), the map
+        # holds only what the drift placed and there is nothing to ask: the most print-like
+        # quadrilateral is taken, as the start-up takes it. A map that had such features asks
+        # them even when the cap has since removed them (a lone dark quadrilateral is no proof).
+        ask_map = self.first_mapped is not None and self.first_mapped <= self.target_seen
+        if not ask_map:
+            # and only if it looks as printed as the target did at the start (not a picture frame)
+            found = [f for f in found[:1] if print_contrast(g, f.uv) >= 0.5 * slam.target_contrast]
         for seen in found[:s.loop_trials]:
             if S is not None:
                 nu = seen.uv - pred.uv
                 if float(np.einsum("ni,nij,nj->", nu, np.linalg.inv(S), nu)) < s.reacquire_chi2:
                     return False    # where the filter expects it: the active search will take it
-            if self._old_map_agrees(g, seen.R_world_cam, seen.r, old):
+            if not ask_map or self._old_map_agrees(g, seen.R_world_cam, seen.r, old):
                 break
         else:
             return False
@@ -677,6 +690,8 @@ class _Track:
                 added = []
             if len(added) == len(chosen):
                 for (uv, tpl), ray in zip(chosen, rays):
+                    if self.first_mapped is None:
+                        self.first_mapped = frame
                     self.features.append(MapFeature(slam.new_id(), tpl, frame, self.state.r.copy(),
                                                     patch=first_view_patch(g, uv, ph), uv0=np.asarray(uv, float),
                                                     R0=R0.copy(), normal=-ray / np.linalg.norm(ray), last_seen=frame))
@@ -747,6 +762,8 @@ class _Track:
         except (SlamNumericalError, FeatureNotMeasurable):
             return
         normal = (p.origin - y) / np.linalg.norm(p.origin - y)
+        if self.first_mapped is None:
+            self.first_mapped = frame
         self.features.append(MapFeature(fid, p.template, frame, p.origin.copy(), patch=patch, uv0=p.uv0, R0=R0,
                                         normal=normal, last_seen=frame))
         st.added += 1
@@ -806,6 +823,7 @@ class MonoSLAM:
         self.messages: list[str] = []      # what the console should say (IMU problems, ...)
         self.nis_limit = float(chi2.ppf(settings.consistency_confidence, 2 * settings.consistency_window))
         self.refined_target: RefinedTarget | None = None
+        self.target_contrast = 0.0              # the target's print contrast in the first image
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave
         self._noise: tuple[int, float] | None = None   # (frame, image noise sigma) last estimated
 
@@ -954,6 +972,7 @@ class MonoSLAM:
         ref, hyps = start_hypotheses(self.cam, g, target, s.click_search_px, s.start_pixel_sigma, s.start_max_rms_px,
                                      s.ambiguity_ratio)
         self.refined_target = ref
+        self.target_contrast = print_contrast(g, ref.uv) if len(ref.uv) == 4 else 0.0
         c = ref.xyz.mean(axis=0)
         _, _, Vt = np.linalg.svd(ref.xyz - c)
         self._tracks = []
