@@ -32,6 +32,16 @@ class SlamConfig:
         motion_noise_interval``, as white accelerations would: a frame dropped or skipped
         lengthens a step without making it harder (``(sigma dt)^2`` would take a 3-frame gap as
         9 frames' worth of variance and grow the search ellipses past searching).
+    adapt_sigma_a : whether each track scales its linear impulse to the accelerations its own
+        velocity estimates show (motion.impulse_sigma, covariance matching) while the camera
+        turns faster than ``adapt_turn_rate`` rad/s: ``adapt_margin`` times the estimate over
+        the last ``adapt_window`` s, from velocity changes ``adapt_lag`` s apart, within
+        ``[sigma_a_min, sigma_a]``, from ``adapt_after`` s after the start (the start's velocity
+        is a guess its first second corrects). ``sigma_a`` is a prior for any hand-held motion;
+        a camera held over a desk accelerates at about 0.2 m/s^2 rms, a walker's head at about
+        1, and with 4 the filter takes a fast turn's unpredicted part partly as an orbit about
+        the new features' depth prior. Not turning, the prior is kept: a pose the views hold
+        weakly (a far, frontal target) stays correctable (benchmarks/NOTES.md).
     sigma_pixel : a feature measurement's standard deviation per axis, px.
     imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
         (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
@@ -54,6 +64,13 @@ class SlamConfig:
     sigma_a: float = 4.0
     sigma_alpha: float = 6.0
     motion_noise_interval: float = 0.033
+    adapt_sigma_a: bool = True
+    adapt_after: float = 2.0
+    adapt_turn_rate: float = 1.0
+    sigma_a_min: float = 1.0
+    adapt_margin: float = 4.0
+    adapt_window: float = 1.0
+    adapt_lag: float = 0.15
     sigma_pixel: float = 1.0
     imu_accel_noise: float = 0.004
     imu_gyro_noise: float = 0.0005

@@ -268,8 +268,9 @@ def _search(grey, tpl, uv, S, n2, max_area, max_score):
     match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
-    a, c = S[0, 0], S[1, 1]
-    if not (np.isfinite(S).all() and np.isfinite(uv).all() and a * c - S[0, 1] ** 2 > 0):
+    a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
+    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(uv[0])
+            and math.isfinite(uv[1]) and a * c - b * b > 0):
         return np.nan, np.nan, 2.0
     hu, hv = math.sqrt(n2 * a), math.sqrt(n2 * c)
     if (2 * hu + 1) * (2 * hv + 1) > max_area:

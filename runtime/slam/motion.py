@@ -89,6 +89,44 @@ def noise_covariance(dt: float, cfg: SlamConfig, gain: float = 1.0) -> np.ndarra
     return np.diag(np.r_[np.full(3, sa * sa), np.full(3, sw * sw)])
 
 
+def impulse_sigma(t: np.ndarray, v: np.ndarray, var_v: np.ndarray, lag: float, t0: float) -> float:
+    """The standard deviation per axis, m/s^2, of the white acceleration a track's velocity
+    estimates show (covariance matching of the process noise, as in Mohamed and Schwarz's
+    adaptive Kalman filtering), stated like ``sigma_a`` for steps of ``t0`` s.
+
+    t : (N,) s, increasing; v : (N, 3) m/s, the filter's velocity after each frame; var_v : (N,)
+    m^2/s^2, the traces of their covariances. Velocity changes are taken between estimates at
+    least ``lag`` s apart (changes from frame to frame are damped by the filter's own lag): a
+    white acceleration of ``sigma`` gives ``E|dv|^2 = 3 sigma^2 dt t0`` over ``dt``, and the two
+    estimates' errors add their variances, which are taken out. Returns NaN when no pair is
+    ``lag`` apart."""
+    t = np.asarray(t, float)
+    j = np.searchsorted(t, t - lag, side="right") - 1
+    k = np.flatnonzero(j >= 0)
+    if not len(k):
+        return float("nan")
+    j = j[k]
+    d = v[k] - v[j]
+    excess = (np.einsum("ij,ij->i", d, d) - var_v[k] - var_v[j]) / (3.0 * (t[k] - t[j]) * t0)
+    return math.sqrt(max(float(np.mean(excess)), 0.0))     # averaged before clipping: unbiased
+
+
+def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.ndarray, turn_rate: float) -> float:
+    """The linear impulse, m/s^2, a track should predict with after the velocity history ``t``
+    (N,) s, ``v`` (N, 3) m/s, ``var_v`` (N,) (:func:`impulse_sigma`) while turning at
+    ``turn_rate`` rad/s: ``adapt_margin`` times the acceleration it shows, within
+    ``[sigma_a_min, sigma_a]``; ``sigma_a`` itself when adapting is off, the camera turns slower
+    than ``adapt_turn_rate``, or the history spans less than ``adapt_lag`` and half
+    ``adapt_window``."""
+    if (not cfg.adapt_sigma_a or turn_rate < cfg.adapt_turn_rate or len(t) < 2
+            or t[-1] - t[0] < cfg.adapt_lag + 0.5 * cfg.adapt_window):
+        return cfg.sigma_a
+    est = impulse_sigma(t, v, var_v, cfg.adapt_lag, cfg.motion_noise_interval)
+    if not math.isfinite(est):
+        return cfg.sigma_a
+    return min(max(cfg.adapt_margin * est, cfg.sigma_a_min), cfg.sigma_a)
+
+
 def bias_walk(P_vv: np.ndarray, dt: float, cfg: SlamConfig) -> None:
     """Add the bias random walks' variance over ``dt`` to a 19-number camera block's covariance
     (in place): ``gyro_bias_walk^2 dt`` and ``accel_bias_walk^2 dt`` per axis."""

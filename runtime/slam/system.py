@@ -51,16 +51,16 @@ from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point
                      innovation_covariances)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
-from .motion import f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
+from .motion import adapted_sigma_a, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
-                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
+                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses, turn_angle)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
-                    TD_INDEX, W_SLICE, SlamNumericalError, State, check_covariance)
+                    TD_INDEX, V_SLICE, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
 __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
@@ -158,6 +158,7 @@ class FrameStats:
     lost: bool = False
     relocalised: bool = False
     retried: bool = False         # searched again with a larger motion impulse (_Track._measure)
+    sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.adapt_sigma_a)
     reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target, _close_loop)
     skipped: str = ""
 
@@ -181,6 +182,30 @@ class _Track:
         # The first frame any natural feature was mapped in (None: none yet; 0: a map given), so
         # the whole-image search knows whether a map from before the target's loss ever existed.
         self.first_mapped = 0 if any(not f.known for f in features) else None
+        # The linear impulse this track predicts with (SlamConfig.adapt_sigma_a) and the
+        # velocity history it is estimated from: (t, v (3,), trace of v's covariance) per frame.
+        self.motion_cfg = slam.cfg
+        self.v_hist: list[tuple[float, np.ndarray, float]] = []
+        self.t_start: float | None = None
+
+    def _adapt_impulse(self, t: float) -> None:
+        """Keep the last ``adapt_window`` s of velocity estimates and, while the camera turns
+        faster than ``adapt_turn_rate``, set the linear impulse the next prediction takes from
+        them (motion.adapted_sigma_a)."""
+        cfg = self.slam.cfg
+        if not cfg.adapt_sigma_a:
+            return
+        if self.t_start is None:
+            self.t_start = t
+        if t - self.t_start < cfg.adapt_after:
+            return
+        self.v_hist.append((t, self.state.x[V_SLICE].copy(), float(np.trace(self.state.P[V_SLICE, V_SLICE]))))
+        while self.v_hist[0][0] < t - cfg.adapt_window - cfg.adapt_lag:
+            self.v_hist.pop(0)
+        sigma = adapted_sigma_a(cfg, np.array([h[0] for h in self.v_hist]), np.array([h[1] for h in self.v_hist]),
+                                np.array([h[2] for h in self.v_hist]), float(np.linalg.norm(self.state.x[W_SLICE])))
+        if sigma != self.motion_cfg.sigma_a:
+            self.motion_cfg = replace(cfg, sigma_a=sigma)
 
     @property
     def lost(self) -> bool:
@@ -211,12 +236,15 @@ class _Track:
                 return True
             except (SlamNumericalError, ValueError):
                 pass
-        predict_cv(self.state, t1 - t0, cfg, noise_gain=noise_gain)
+        predict_cv(self.state, t1 - t0, self.motion_cfg, noise_gain=noise_gain)
         return False
 
     def step(self, g: np.ndarray, t_prev: float, t: float, imu_rows, st: FrameStats, frame: int) -> None:
         s, cfg = self.slam.settings, self.slam.cfg
         lost = self.lost
+        if lost:
+            self.motion_cfg = cfg        # lost, the prior: nothing says how the camera moves now
+        st.sigma_a = self.motion_cfg.sigma_a
         st.imu = self.propagate(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
         counts = saved = None
         if lost:
@@ -255,6 +283,8 @@ class _Track:
         # MonoSLAM adds features when too few are actually observed (matched), not predicted.
         if st.matched < s.visible_min:
             self._add(g, st, frame, st.matched)
+        if not lost:
+            self._adapt_impulse(t)
         if frame % cfg.psd_check_every == 0:
             self.state.P = check_covariance(self.state.P, f"frame {frame}", cfg.psd_rel_tol, True, self.state.describe)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
@@ -432,7 +462,7 @@ class _Track:
         taken impulses ``gain`` times larger: ``G P_n G^T`` added ``gain^2 - 1`` times more."""
         cd = self.state.cam_dim
         _, _, G = f_and_dfdx_dfdn(self.state.x[:cd], dt)
-        extra = G @ noise_covariance(dt, self.slam.cfg, math.sqrt(gain * gain - 1.0)) @ G.T
+        extra = G @ noise_covariance(dt, self.motion_cfg, math.sqrt(gain * gain - 1.0)) @ G.T
         self.state.P[:cd, :cd] += 0.5 * (extra + extra.T)
 
     def _votes(self, ks: np.ndarray) -> np.ndarray:
@@ -500,7 +530,12 @@ class _Track:
         if not hyps:
             return
         R_now = quat_to_rotation(self.state.x[Q_SLICE])
-        self._restart_at_target(min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now)), st, frame)
+        hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))
+        # A drift turns the camera by little; a pose half a turn away is another quadrilateral
+        # (or this one's corners in another order), as in the whole-image search.
+        if turn_angle(R_now, hyp.R_world_cam) > s.loop_max_turn_rad:
+            return
+        self._restart_at_target(hyp, st, frame)
 
     def _close_loop(self, g: np.ndarray, st: FrameStats, frame: int) -> bool:
         """The target unmatched for a while: sought anywhere in the image (startup.locate_target),

@@ -76,6 +76,32 @@ def test_a_drifted_pose_is_put_back_at_the_target_and_the_drifted_map_removed():
     assert err_off > 0.02                              # without it the drift stays
 
 
+def test_a_quadrilateral_whose_pose_is_half_a_turn_away_is_not_taken(monkeypatch):
+    """The local re-acquisition finds the printed rectangle with its corners taken half a turn
+    round (a rectangle fits a pose either way: twin sit-down seed 8 went 2.2 m and 157 degrees
+    off so): the pose it gives is refused, as the whole-image search refuses it, and the camera
+    is not put there (its drift goes on); allowed any turn, it is moved half a turn round."""
+    img, uv, (R, r) = view(0.6, 60.0)
+    real = system.find_quadrilateral
+    monkeypatch.setattr(system, "find_quadrilateral", lambda *a, **k: None if (q := real(*a, **k)) is None
+                        else np.roll(q, 2, axis=0))
+
+    def run(max_turn: float):
+        slam = MonoSLAM(CAM, DEFAULT_CONFIG, replace(MapSettings(), reacquire_after=3, retry_noise_gain=1.0,
+                                                     loop_max_turn_rad=max_turn), imu=False)
+        slam.start(img, 0.0, Target(RECT, uv + 1.5))
+        slam.state.x[0:3] += [0.04, -0.03, 0.02]
+        stats = [slam.process(img, k / 30) for k in range(1, 9)]
+        return st.rotation_error_rad(quat_to_rotation(slam.state.x[3:7]), R), any(s.reacquired for s in stats)
+
+    turn, moved = run(MapSettings().loop_max_turn_rad)
+    turn_any, moved_any = run(np.pi)
+    print(f"\nrefused: {np.degrees(turn):.1f} deg off; any turn allowed: re-acquired {moved_any}, "
+          f"{np.degrees(turn_any):.0f} deg off")
+    assert not moved
+    assert moved_any and turn_any > 2.5
+
+
 def test_a_jerk_the_motion_model_missed_is_searched_again_with_larger_impulses():
     """The camera holds still for a second, then turns 30 mrad in one frame: about 15 px at this
     focal length, beyond the ellipses the constant-velocity model's 6 rad/s^2 allows; the frame
@@ -167,22 +193,28 @@ def test_a_pose_drifted_until_the_target_is_off_its_prediction_is_put_back_by_th
     assert np.linalg.norm(slam_off.state.x[0:3] - r) > 0.05        # without it the drift stays
 
 
-def test_a_dark_rectangle_elsewhere_does_not_move_the_camera(monkeypatch):
+@pytest.fixture
+def candidates(monkeypatch) -> list:
+    """Every pose the whole-image search located (``locate_target``'s answers), as the run goes."""
+    found = []
+    real = system.locate_target
+
+    def spy(*a, **k):
+        out = real(*a, **k)
+        found.extend(out)
+        return out
+
+    monkeypatch.setattr(system, "locate_target", spy)
+    return found
+
+
+def test_a_dark_rectangle_elsewhere_does_not_move_the_camera(candidates):
     """The target hidden and a rectangle of its size printed 20 cm away: it fits a pose (found
     as a candidate) but the map mapped before the drift does not match there, so the camera is
     not put at it."""
     _, _, (R, r) = view(0.6, 60.0, -70.0)
     impostor = st.render_target_scene(CAM, R, r, st.rectangle(0.21, 0.15, centre=(0.2, 0.05)),
                                       card_margin=CARD_MARGIN, background=st.texture(1))
-    candidates = []
-    real = system.locate_target
-
-    def spy(*a, **k):
-        out = real(*a, **k)
-        candidates.extend(out)
-        return out
-
-    monkeypatch.setattr(system, "locate_target", spy)
     slam, _, _, stats = _drift_off_the_image([impostor] * 30, loop_after=15)
     print(f"\n{len(candidates)} candidate poses, nearest {100 * min(np.linalg.norm(c.r - r) for c in candidates):.1f} cm "
           f"from the camera")
@@ -216,7 +248,7 @@ def test_a_pose_drifted_before_any_feature_was_mapped_is_put_back_by_the_whole_i
     assert not any(s.reacquired for s in stats_off) and err_off > 0.05
 
 
-def test_with_no_map_to_ask_a_dark_patch_of_texture_is_not_taken(monkeypatch):
+def test_with_no_map_to_ask_a_dark_patch_of_texture_is_not_taken(candidates):
     """The same early drift, but from the first frame on the rectangle's inside is dark texture
     (a picture, a shadow over a pattern) rather than a flat print: it is located and fits the
     true pose, but it is not as print-like as the target was at the start (under half its
@@ -229,15 +261,6 @@ def test_with_no_map_to_ask_a_dark_patch_of_texture_is_not_taken(monkeypatch):
     inside = cv2.erode(inside, np.ones((5, 5), np.uint8)).astype(bool)
     textured = img.copy()
     textured[inside] = np.clip(60 + np.random.default_rng(0).normal(0, 20, inside.sum()), 0, 255).astype(np.uint8)
-    candidates = []
-    real = system.locate_target
-
-    def spy(*a, **k):
-        out = real(*a, **k)
-        candidates.extend(out)
-        return out
-
-    monkeypatch.setattr(system, "locate_target", spy)
     slam = MonoSLAM(CAM, DEFAULT_CONFIG, replace(MapSettings(), retry_noise_gain=1.0), imu=False)
     slam.start(img, 0.0, Target(RECT, uv + 1.5))
     slam.state.x[0:3] += (-0.034, 0.023, 0.083)

@@ -9,7 +9,9 @@ bas-relief ambiguity), and the filter splits the one between the other as the im
 variances do: with MonoSLAM's hand-held 6 rad/s^2 the turn's start is taken partly as a
 translation (2-6 cm and 1.5-4 degrees off after the turn), with 12 it is followed (under 1.5 cm
 and 1 degree). This is the desk gaze-away failures' mechanism (benchmarks/NOTES.md); the default
-stays at 6, which holds the walks and the recovery from a drifted pose better."""
+stays at 6, which holds the walks and the recovery from a drifted pose better, and a track
+lowers the linear impulse instead while it turns fast (SlamConfig.adapt_sigma_a,
+test_slam_impulse.py)."""
 
 from __future__ import annotations
 
@@ -41,10 +43,11 @@ def _pixels(P_cam: np.ndarray) -> np.ndarray:
     return uv
 
 
-def turn_errors(cfg: SlamConfig, seed: int, alpha: float = 30.0, frames: int = 5) -> tuple[float, float]:
-    """(position error m, rotation error rad) after the pan: ``alpha`` rad/s^2 for ``frames``
-    frames, -alpha as long, then 20 frames still; pixels with 0.5 px noise, up to 8 new
-    features a frame while fewer than 30 are in view."""
+def turn_errors(cfg: SlamConfig, seed: int, alpha: float = 30.0, frames: int = 5, still: int = 3) -> tuple[float, float]:
+    """(position error m, rotation error rad) after ``still`` frames at rest and the pan:
+    ``alpha`` rad/s^2 for ``frames`` frames, -alpha as long, then 20 frames still; pixels with
+    0.5 px noise, up to 8 new features a frame while fewer than 30 are in view. The impulses
+    are ``cfg``'s as given (a track's adaptation of the linear one is not modelled here)."""
     rng = np.random.default_rng(seed)
     n = 600
     az, el, depth = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.5, 3.0, n)
@@ -54,7 +57,7 @@ def turn_errors(cfg: SlamConfig, seed: int, alpha: float = 30.0, frames: int = 5
     state = State.from_camera(x_v, np.diag([1e-8] * 7 + [0.01**2] * 3 + [0.05**2] * 3))
     mapped: list[int] = []
     theta = omega = 0.0
-    for a in [0.0] * 3 + [alpha] * frames + [-alpha] * frames + [0.0] * 20:
+    for a in [0.0] * still + [alpha] * frames + [-alpha] * frames + [0.0] * 20:
         theta += omega * DT + 0.5 * a * DT * DT
         omega += a * DT
         R_world_cam = Rotation.from_rotvec([0.0, theta, 0.0]).as_matrix()
