@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, in_image, project, undistort
+from kinematics.transforms import rotation_angle
 
 from ..sequence import Target
 from .quaternion import dq_dtheta_right, quat_from_rotation
@@ -332,7 +333,7 @@ def locate_target(grey: np.ndarray, cam: CameraIntrinsics, xyz: np.ndarray, R_ne
         for k in range(4):
             idx = np.roll(np.arange(4), -k)
             for R_wc, r in _planar_poses(xyz, xy[idx]):
-                turn = turn_angle(R_near, R_wc)
+                turn = rotation_angle(R_near, R_wc)
                 if turn >= best_turn or np.any((xyz - r) @ R_wc[:, 2] <= 0):
                     continue
                 res = _pose_residuals(cam, xyz, q[idx], R_wc, r)
@@ -341,11 +342,6 @@ def locate_target(grey: np.ndarray, cam: CameraIntrinsics, xyz: np.ndarray, R_ne
         if best is not None:
             found.append(best)
     return found
-
-
-def turn_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """The angle, rad, of the rotation between two rotation matrices (3, 3)."""
-    return math.acos(min(max(0.5 * (float(np.einsum("ij,ij->", R_a, R_b)) - 1.0), -1.0), 1.0))
 
 
 def _signed_area(p: np.ndarray) -> float:

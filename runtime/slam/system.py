@@ -41,6 +41,7 @@ from scipy.stats import chi2
 
 from kinematics.camera import CameraIntrinsics, in_image, unproject
 from kinematics.camera import project as project_points
+from kinematics.transforms import rotation_angle
 
 from ..sequence import Target
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
@@ -58,7 +59,7 @@ from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
-                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses, turn_angle)
+                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
                     TD_INDEX, V_SLICE, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -533,7 +534,7 @@ class _Track:
         hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))
         # A drift turns the camera by little; a pose half a turn away is another quadrilateral
         # (or this one's corners in another order), as in the whole-image search.
-        if turn_angle(R_now, hyp.R_world_cam) > s.loop_max_turn_rad:
+        if rotation_angle(R_now, hyp.R_world_cam) > s.loop_max_turn_rad:
             return
         self._restart_at_target(hyp, st, frame)
 
