@@ -379,6 +379,8 @@ def cmd_slam(args) -> int:
     settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
                        features=args.features)
     cfg = replace(DEFAULT_CONFIG, time_offset0=args.imu_clock_offset / 1000.0)
+    if args.fixed_impulses:
+        cfg = replace(cfg, adapt_sigma_a=False, adapt_sigma_alpha=False)
     if args.measure is not None:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
@@ -918,6 +920,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "the paper's particle depth pdf")
     sl.add_argument("--measure", type=_positive_int, default=None, metavar="N",
                     help="features measured per frame, at most (default: MapSettings.measure_max, 60)")
+    sl.add_argument("--fixed-impulses", action="store_true",
+                    help="predict with MonoSLAM's fixed impulses (4 m/s^2, 6 rad/s^2) instead of adapting them to the "
+                         "track's own motion through fast turns (SlamConfig.adapt_sigma_a, adapt_sigma_alpha)")
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")

@@ -42,6 +42,15 @@ class SlamConfig:
         1, and with 4 the filter takes a fast turn's unpredicted part partly as an orbit about
         the new features' depth prior. Not turning, the prior is kept: a pose the views hold
         weakly (a far, frontal target) stays correctable (benchmarks/NOTES.md).
+    adapt_sigma_alpha : whether each track raises its angular impulse while its own rate
+        estimates show a manoeuvre (motion.adapted_sigma_alpha, an adjustable-level process noise
+        as in Bar-Shalom, Li and Kirubarajan's manoeuvring-target tracking): the angular
+        acceleration over the last ``adapt_alpha_lag`` s, times ``adapt_alpha_margin``, within
+        ``[sigma_alpha, sigma_alpha_max]``, while the camera turns faster than
+        ``adapt_turn_rate`` and from ``adapt_after`` s after the start. A head
+        turning at 400 degrees/s starts and stops at 20-30 rad/s^2; predicted with 6, the turn's
+        rotation is missed, the matches fall to a handful and their innovations are taken partly
+        as translation (benchmarks/NOTES.md).
     sigma_pixel : a feature measurement's standard deviation per axis, px.
     imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
         (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
@@ -71,6 +80,10 @@ class SlamConfig:
     adapt_margin: float = 4.0
     adapt_window: float = 1.0
     adapt_lag: float = 0.15
+    adapt_sigma_alpha: bool = True
+    adapt_alpha_lag: float = 0.1
+    adapt_alpha_margin: float = 2.0
+    sigma_alpha_max: float = 30.0
     sigma_pixel: float = 1.0
     imu_accel_noise: float = 0.004
     imu_gyro_noise: float = 0.0005

@@ -127,6 +127,32 @@ def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.nda
     return min(max(cfg.adapt_margin * est, cfg.sigma_a_min), cfg.sigma_a)
 
 
+def adapted_sigma_alpha(cfg: SlamConfig, t: np.ndarray, w: np.ndarray, var_w: np.ndarray) -> float:
+    """The angular impulse, rad/s^2, a track should predict with after the rate history ``t``
+    (N,) s, ``w`` (N, 3) rad/s, ``var_w`` (N,) rad^2/s^2 (the filter's estimates after each frame
+    and the traces of their covariances; the last is now): ``adapt_alpha_margin`` times the
+    mean angular acceleration over the last ``adapt_alpha_lag`` s, within ``[sigma_alpha,
+    sigma_alpha_max]`` (never below the prior), while the camera turns faster than
+    ``adapt_turn_rate`` (a gaze shift; a walker's sway, under 0.7 rad/s, keeps the prior). The
+    rate's change counts only beyond the two estimates' own errors (their variances taken out,
+    as in covariance matching). ``sigma_alpha`` itself when adapting is off, the camera turns
+    slower, or the history spans less than half the lag. A steady angular acceleration
+    ``alpha`` changes the rate by ``alpha dt`` a step, a ``1 / margin`` sigma impulse at
+    ``margin alpha``."""
+    if not cfg.adapt_sigma_alpha or len(t) < 2 or not float(np.linalg.norm(w[-1])) > cfg.adapt_turn_rate:
+        return cfg.sigma_alpha
+    j = int(np.searchsorted(t, t[-1] - 1.05 * cfg.adapt_alpha_lag))   # a frame's jitter allowed
+    span = float(t[-1] - t[j])
+    if span < 0.5 * cfg.adapt_alpha_lag:
+        return cfg.sigma_alpha
+    d = w[-1] - w[j]
+    excess = float(d @ d) - float(var_w[-1]) - float(var_w[j])
+    if not math.isfinite(excess):
+        return cfg.sigma_alpha
+    est = math.sqrt(max(excess, 0.0)) / span
+    return min(max(cfg.adapt_alpha_margin * est, cfg.sigma_alpha), max(cfg.sigma_alpha_max, cfg.sigma_alpha))
+
+
 def bias_walk(P_vv: np.ndarray, dt: float, cfg: SlamConfig) -> None:
     """Add the bias random walks' variance over ``dt`` to a 19-number camera block's covariance
     (in place): ``gyro_bias_walk^2 dt`` and ``accel_bias_walk^2 dt`` per axis."""

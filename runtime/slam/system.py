@@ -52,7 +52,7 @@ from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point
                      innovation_covariances)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
-from .motion import adapted_sigma_a, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
+from .motion import adapted_sigma_a, adapted_sigma_alpha, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
@@ -160,6 +160,7 @@ class FrameStats:
     relocalised: bool = False
     retried: bool = False         # searched again with a larger motion impulse (_Track._measure)
     sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.adapt_sigma_a)
+    sigma_alpha: float = 0.0      # the angular impulse, rad/s^2 (SlamConfig.adapt_sigma_alpha)
     reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target, _close_loop)
     skipped: str = ""
 
@@ -183,30 +184,39 @@ class _Track:
         # The first frame any natural feature was mapped in (None: none yet; 0: a map given), so
         # the whole-image search knows whether a map from before the target's loss ever existed.
         self.first_mapped = 0 if any(not f.known for f in features) else None
-        # The linear impulse this track predicts with (SlamConfig.adapt_sigma_a) and the
-        # velocity history it is estimated from: (t, v (3,), trace of v's covariance) per frame.
+        # The impulses this track predicts with (SlamConfig.adapt_sigma_a, adapt_sigma_alpha)
+        # and the history they are estimated from: (t, v (3,), trace of v's covariance, w (3,),
+        # trace of w's covariance).
         self.motion_cfg = slam.cfg
-        self.v_hist: list[tuple[float, np.ndarray, float]] = []
+        self.v_hist: list[tuple[float, np.ndarray, float, np.ndarray, float]] = []
         self.t_start: float | None = None
 
     def _adapt_impulse(self, t: float) -> None:
-        """Keep the last ``adapt_window`` s of velocity estimates and, while the camera turns
-        faster than ``adapt_turn_rate``, set the linear impulse the next prediction takes from
-        them (motion.adapted_sigma_a)."""
+        """Keep the last seconds of velocity and rate estimates and set the impulses the next
+        prediction takes from them: the linear one while the camera turns faster than
+        ``adapt_turn_rate`` (motion.adapted_sigma_a), the angular one through a manoeuvre
+        (motion.adapted_sigma_alpha)."""
         cfg = self.slam.cfg
-        if not cfg.adapt_sigma_a:
+        if not (cfg.adapt_sigma_a or cfg.adapt_sigma_alpha):
             return
         if self.t_start is None:
             self.t_start = t
         if t - self.t_start < cfg.adapt_after:
             return
-        self.v_hist.append((t, self.state.x[V_SLICE].copy(), float(np.trace(self.state.P[V_SLICE, V_SLICE]))))
-        while self.v_hist[0][0] < t - cfg.adapt_window - cfg.adapt_lag:
+        x, P = self.state.x, self.state.P
+        self.v_hist.append((t, x[V_SLICE].copy(), float(np.trace(P[V_SLICE, V_SLICE])),
+                            x[W_SLICE].copy(), float(np.trace(P[W_SLICE, W_SLICE]))))
+        span = cfg.adapt_window + cfg.adapt_lag
+        while self.v_hist[0][0] < t - max(span, 1.05 * cfg.adapt_alpha_lag):
             self.v_hist.pop(0)
-        sigma = adapted_sigma_a(cfg, np.array([h[0] for h in self.v_hist]), np.array([h[1] for h in self.v_hist]),
-                                np.array([h[2] for h in self.v_hist]), float(np.linalg.norm(self.state.x[W_SLICE])))
-        if sigma != self.motion_cfg.sigma_a:
-            self.motion_cfg = replace(cfg, sigma_a=sigma)
+        th = np.array([h[0] for h in self.v_hist])
+        lin = self.v_hist[int(np.searchsorted(th, t - span)):]
+        sigma_a = adapted_sigma_a(cfg, th[len(th) - len(lin):], np.array([h[1] for h in lin]),
+                                  np.array([h[2] for h in lin]), float(np.linalg.norm(x[W_SLICE])))
+        sigma_alpha = adapted_sigma_alpha(cfg, th, np.array([h[3] for h in self.v_hist]),
+                                          np.array([h[4] for h in self.v_hist]))
+        if (sigma_a, sigma_alpha) != (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha):
+            self.motion_cfg = replace(cfg, sigma_a=sigma_a, sigma_alpha=sigma_alpha)
 
     @property
     def lost(self) -> bool:
@@ -245,7 +255,7 @@ class _Track:
         lost = self.lost
         if lost:
             self.motion_cfg = cfg        # lost, the prior: nothing says how the camera moves now
-        st.sigma_a = self.motion_cfg.sigma_a
+        st.sigma_a, st.sigma_alpha = self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha
         st.imu = self.propagate(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
         counts = saved = None
         if lost:

@@ -1,6 +1,8 @@
-"""The linear impulse each track adapts to its own motion (SlamConfig.adapt_sigma_a,
-motion.impulse_sigma / adapted_sigma_a): checked against velocity histories whose white
-acceleration is known, and on the fast turn of test_slam_turn after a still start."""
+"""The impulses each track adapts to its own motion: the linear one (SlamConfig.adapt_sigma_a,
+motion.impulse_sigma / adapted_sigma_a), checked against velocity histories whose white
+acceleration is known and on the fast turn of test_slam_turn after a still start; the angular
+one through a manoeuvre (SlamConfig.adapt_sigma_alpha, motion.adapted_sigma_alpha), against rate
+histories of known angular acceleration and in a track."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ import numpy as np
 import pytest
 
 from runtime.slam.config import DEFAULT_CONFIG
-from runtime.slam.motion import adapted_sigma_a, impulse_sigma
+from runtime.slam.motion import adapted_sigma_a, adapted_sigma_alpha, impulse_sigma
 
 T0 = DEFAULT_CONFIG.motion_noise_interval
 DT = 1.0 / 30.0
@@ -96,3 +98,80 @@ def test_the_linear_impulse_decides_a_fast_turn_s_split_too():
         print(f"{name}: position cm {np.round(100 * e[:, 0], 2)}, rotation deg {np.round(np.degrees(e[:, 1]), 2)}")
     assert (floor[:, 0] < 0.01).all() and (floor[:, 1] < np.radians(0.5)).all()
     assert np.median(prior[:, 0]) > 0.02
+
+
+def rates(alpha: float, n: int = 12, axis=(0.0, 0.6, 0.8), w0=(2.0, 0.0, 0.0), noise: float = 0.0):
+    """t (n,), w (n, 3), var_w (n,): a rate from ``w0`` rad/s changing at a steady ``alpha``
+    rad/s^2 about ``axis``, its estimates with errors of covariance trace ``noise^2``."""
+    t = 5.0 + np.arange(n) * DT
+    return t, np.asarray(w0) + np.outer(t - t[0], alpha * np.asarray(axis)), np.full(n, noise * noise)
+
+
+def test_the_angular_impulse_is_the_manoeuvre_times_the_margin_within_its_bounds():
+    cfg = DEFAULT_CONFIG
+    assert adapted_sigma_alpha(cfg, *rates(12.0)) == pytest.approx(cfg.adapt_alpha_margin * 12.0)
+    assert adapted_sigma_alpha(cfg, *rates(1.0)) == cfg.sigma_alpha            # a walker's sway: the prior
+    assert adapted_sigma_alpha(cfg, *rates(0.0)) == cfg.sigma_alpha
+    assert adapted_sigma_alpha(cfg, *rates(200.0)) == cfg.sigma_alpha_max      # the cap
+    assert adapted_sigma_alpha(replace(cfg, adapt_sigma_alpha=False), *rates(12.0)) == cfg.sigma_alpha
+    assert adapted_sigma_alpha(cfg, *rates(12.0, n=1)) == cfg.sigma_alpha      # nothing to compare
+    # Turning slower than adapt_turn_rate (a walker's sway), the prior.
+    assert adapted_sigma_alpha(cfg, *rates(12.0, w0=(0.1, 0.0, 0.0), n=3)) == cfg.sigma_alpha
+    # Only the last adapt_alpha_lag counts: a turn that started and stopped before it does not.
+    t, w, var = rates(12.0, n=20)
+    w[-5:] = w[-6]
+    assert adapted_sigma_alpha(cfg, t, w, var) == cfg.sigma_alpha
+    # The estimates' own errors are taken out: 0.5 rad/s over 0.1 s, each estimate 0.3 rad/s
+    # uncertain, is 2.6 rad/s^2 beyond them (5 seen), under the prior at the default margin.
+    t, w, var = rates(5.0, noise=0.3)
+    assert adapted_sigma_alpha(replace(cfg, adapt_alpha_margin=1.0, sigma_alpha=0.0), t, w, var) \
+        == pytest.approx(np.sqrt(0.5**2 - 2 * 0.3**2) / 0.1, rel=0.02)
+    assert adapted_sigma_alpha(cfg, t, w, var) == cfg.sigma_alpha
+    assert adapted_sigma_alpha(cfg, *rates(5.0, noise=0.2)[:2], var * 0) > cfg.sigma_alpha
+    # A prior above the cap is kept, never lowered.
+    assert adapted_sigma_alpha(replace(cfg, sigma_alpha=40.0), *rates(12.0)) == 40.0
+
+
+def test_a_track_raises_its_angular_impulse_when_its_rate_estimate_jumps():
+    """MonoSLAM on a still camera keeps the prior (FrameStats.sigma_alpha); a rate estimate 3
+    rad/s from the last (90 rad/s^2) has the next frame predicted with the cap, and with the
+    prior when adapting is off."""
+    from test_slam_recovery import CAM, RECT, view
+
+    from runtime.sequence import Target
+    from runtime.slam.config import MapSettings
+    from runtime.slam.state import W_SLICE
+    from runtime.slam.system import MonoSLAM
+
+    img, uv, _ = view(0.6, 60.0)
+    for cfg, expected in ((DEFAULT_CONFIG, DEFAULT_CONFIG.sigma_alpha_max),
+                          (replace(DEFAULT_CONFIG, adapt_sigma_alpha=False), DEFAULT_CONFIG.sigma_alpha)):
+        slam = MonoSLAM(CAM, cfg, MapSettings(), imu=False)
+        slam.start(img, 0.0, Target(RECT, uv + 1.5))
+        still = np.array([slam.process(img, k / 30).sigma_alpha for k in range(1, 76)])
+        assert (still == cfg.sigma_alpha).all()
+        track = slam.track
+        track.state.x[W_SLICE] += [0.0, 3.0, 0.0]
+        track._adapt_impulse(76 / 30)        # as after a frame whose update left the rate there
+        assert slam.process(img, 76 / 30).sigma_alpha == expected
+
+
+class _Captured(Exception):
+    pass
+
+
+@pytest.mark.parametrize("flag, adapting", [([], True), (["--fixed-impulses"], False)])
+def test_wvr_slam_fixed_impulses_turns_both_adaptations_off(monkeypatch, tmp_path, flag, adapting):
+    """`wvr slam --fixed-impulses` reaches the filter's configuration (both adaptations off);
+    without it both are on."""
+    import runtime.slam.run as run
+    from wvr.cli import main
+
+    def capture(*args, cfg, **kwargs):
+        raise _Captured(cfg)
+
+    monkeypatch.setattr(run, "run_slam", capture)
+    with pytest.raises(_Captured) as got:
+        main(["slam", str(tmp_path / "seq"), "--out", str(tmp_path / "out")] + flag)
+    cfg = got.value.args[0]
+    assert cfg.adapt_sigma_a is adapting and cfg.adapt_sigma_alpha is adapting
