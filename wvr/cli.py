@@ -380,7 +380,7 @@ def cmd_slam(args) -> int:
                        features=args.features)
     cfg = replace(DEFAULT_CONFIG, time_offset0=args.imu_clock_offset / 1000.0)
     if args.fixed_impulses:
-        cfg = replace(cfg, adapt_sigma_a=False, adapt_sigma_alpha=False)
+        cfg = replace(cfg, adapt_sigma_a=False, adapt_sigma_alpha=False, adapt_onset=False)
     if args.measure is not None:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
@@ -922,7 +922,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="features measured per frame, at most (default: MapSettings.measure_max, 60)")
     sl.add_argument("--fixed-impulses", action="store_true",
                     help="predict with MonoSLAM's fixed impulses (4 m/s^2, 6 rad/s^2) instead of adapting them to the "
-                         "track's own motion through fast turns (SlamConfig.adapt_sigma_a, adapt_sigma_alpha)")
+                         "track's own motion through fast turns (SlamConfig.adapt_sigma_a, adapt_sigma_alpha, "
+                         "adapt_onset)")
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")

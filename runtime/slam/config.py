@@ -51,6 +51,11 @@ class SlamConfig:
         turning at 400 degrees/s starts and stops at 20-30 rad/s^2; predicted with 6, the turn's
         rotation is missed, the matches fall to a handful and their innovations are taken partly
         as translation (benchmarks/NOTES.md).
+    adapt_onset : whether a frame whose update starts a turn (the posterior's impulses, as
+        above, are no longer the priors) is measured again from the prediction with the turn's
+        impulses: the prior impulses it was first measured with take the turn's unforeseen
+        start partly as translation, and the turn's smaller linear impulse then holds that
+        velocity error (benchmarks/NOTES.md).
     sigma_pixel : a feature measurement's standard deviation per axis, px.
     imu_accel_noise, imu_gyro_noise : white-noise densities of the IMU's specific force
         (m/s^2/sqrt(Hz)) and rate (rad/s/sqrt(Hz)) as the inertial prediction models them.
@@ -81,6 +86,7 @@ class SlamConfig:
     adapt_window: float = 1.0
     adapt_lag: float = 0.15
     adapt_sigma_alpha: bool = True
+    adapt_onset: bool = True
     adapt_alpha_lag: float = 0.1
     adapt_alpha_margin: float = 2.0
     sigma_alpha_max: float = 30.0

@@ -206,6 +206,14 @@ class FrameUpdate:
         self._U = np.zeros((state.n, 0))
         self.batches = 0
 
+    def variances(self, sl: slice) -> np.ndarray:
+        """The current covariance's diagonal over the state's entries ``sl`` (before the
+        quaternion's normalisation Jacobian, which only :meth:`commit` applies)."""
+        d = np.diag(self.state.P)[sl].copy()
+        if self._U.shape[1]:
+            d -= np.einsum("ij,ij->i", self._U[sl], self._U[sl])
+        return d
+
     def predict(self, ks) -> Prediction:
         """The features' predictions at the current mean."""
         return predict(self.state, ks, self.cam, x=self.x)

@@ -111,6 +111,12 @@ def impulse_sigma(t: np.ndarray, v: np.ndarray, var_v: np.ndarray, lag: float, t
     return math.sqrt(max(float(np.mean(excess)), 0.0))     # averaged before clipping: unbiased
 
 
+def turning(cfg: SlamConfig, rate: float) -> bool:
+    """Whether a camera turning at ``rate`` rad/s turns fast enough for the impulses to adapt
+    (faster than ``adapt_turn_rate``); both adaptations keep the priors otherwise."""
+    return rate > cfg.adapt_turn_rate
+
+
 def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.ndarray, turn_rate: float) -> float:
     """The linear impulse, m/s^2, a track should predict with after the velocity history ``t``
     (N,) s, ``v`` (N, 3) m/s, ``var_v`` (N,) (:func:`impulse_sigma`) while turning at
@@ -118,7 +124,7 @@ def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.nda
     ``[sigma_a_min, sigma_a]``; ``sigma_a`` itself when adapting is off, the camera turns slower
     than ``adapt_turn_rate``, or the history spans less than ``adapt_lag`` and half
     ``adapt_window``."""
-    if (not cfg.adapt_sigma_a or turn_rate < cfg.adapt_turn_rate or len(t) < 2
+    if (not cfg.adapt_sigma_a or not turning(cfg, turn_rate) or len(t) < 2
             or t[-1] - t[0] < cfg.adapt_lag + 0.5 * cfg.adapt_window):
         return cfg.sigma_a
     est = impulse_sigma(t, v, var_v, cfg.adapt_lag, cfg.motion_noise_interval)
@@ -139,7 +145,7 @@ def adapted_sigma_alpha(cfg: SlamConfig, t: np.ndarray, w: np.ndarray, var_w: np
     slower, or the history spans less than half the lag. A steady angular acceleration
     ``alpha`` changes the rate by ``alpha dt`` a step, a ``1 / margin`` sigma impulse at
     ``margin alpha``."""
-    if not cfg.adapt_sigma_alpha or len(t) < 2 or not float(np.linalg.norm(w[-1])) > cfg.adapt_turn_rate:
+    if not cfg.adapt_sigma_alpha or len(t) < 2 or not turning(cfg, float(np.linalg.norm(w[-1]))):
         return cfg.sigma_alpha
     j = int(np.searchsorted(t, t[-1] - 1.05 * cfg.adapt_alpha_lag))   # a frame's jitter allowed
     span = float(t[-1] - t[j])

@@ -27,6 +27,7 @@ consensus wins. The sampling and the adaptive count are Civera et al.'s, by matc
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,7 @@ class RansacResult:
     rescued: np.ndarray
     used: np.ndarray
     hypotheses: int
+    refused: bool = False      # the caller's ``accept`` turned the posterior down: nothing applied
 
     @property
     def n_inliers(self) -> int:
@@ -130,7 +132,8 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
 def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraIntrinsics, R_pix,
                      pred: Prediction, S: np.ndarray, threshold_px: float, max_hypotheses: int,
                      confidence: float, rescue_chi2: float, rng: np.random.Generator,
-                     r_scale: np.ndarray | None = None, votes: np.ndarray | None = None) -> RansacResult:
+                     r_scale: np.ndarray | None = None, votes: np.ndarray | None = None,
+                     accept: Callable[[FrameUpdate], bool] | None = None) -> RansacResult:
     """Select the inliers among the matches ``z`` (m, 2) px of the distinct features ``ks`` and
     update the state with them, in place (the three steps of the module docstring).
 
@@ -138,7 +141,9 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
     ones the search used). ``r_scale`` (m,) : each measurement's noise variance as a multiple of
     ``R_pix`` (default 1). ``votes`` (m,) : what each match's agreement counts for in choosing
     the hypothesis (default 1 each). An update refused for numerical reasons leaves the state as it was
-    and its matches unused.
+    and its matches unused. ``accept`` : shown the frame's updates before they are written (the
+    posterior mean ``x`` and variances of the FrameUpdate); False leaves the state as it was,
+    with ``refused`` set.
     """
     ks = np.asarray(ks, np.intp)
     m = len(ks)
@@ -188,6 +193,8 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
                 used[sel] = True
             except SlamNumericalError:
                 pass
+    if accept is not None and used.any() and not accept(fu):
+        return RansacResult(low, rescued, np.zeros(m, bool), tried, refused=True)
     try:
         fu.commit()
     except SlamNumericalError:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -48,11 +49,12 @@ from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .corners import grey, min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
-from .filter import (FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, convert_to_point,
+from .filter import (FeatureNotMeasurable, FrameUpdate, add_inverse_depth_features, add_point_feature, convert_to_point,
                      innovation_covariances)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
-from .motion import adapted_sigma_a, adapted_sigma_alpha, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance, predict as predict_cv
+from .motion import (adapted_sigma_a, adapted_sigma_alpha, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance,
+                     predict as predict_cv, turning)
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
@@ -159,6 +161,7 @@ class FrameStats:
     lost: bool = False
     relocalised: bool = False
     retried: bool = False         # searched again with a larger motion impulse (_Track._measure)
+    onset: bool = False           # measured again with a turn's impulses (_Track.step)
     sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.adapt_sigma_a)
     sigma_alpha: float = 0.0      # the angular impulse, rad/s^2 (SlamConfig.adapt_sigma_alpha)
     reacquired: bool = False      # the camera put back at the target's pose (_Track._watch_target, _close_loop)
@@ -191,32 +194,55 @@ class _Track:
         self.v_hist: list[tuple[float, np.ndarray, float, np.ndarray, float]] = []
         self.t_start: float | None = None
 
-    def _adapt_impulse(self, t: float) -> None:
-        """Keep the last seconds of velocity and rate estimates and set the impulses the next
-        prediction takes from them: the linear one while the camera turns faster than
-        ``adapt_turn_rate`` (motion.adapted_sigma_a), the angular one through a manoeuvre
+    def _impulses(self, t: float, x: np.ndarray, var_v: float, var_w: float) -> tuple[list, float, float]:
+        """The velocity and rate history with the estimates ``x`` now (the traces of their
+        covariances ``var_v``, ``var_w``), and the impulses a prediction takes from it: the
+        linear one while the camera turns faster than ``adapt_turn_rate``
+        (motion.adapted_sigma_a), the angular one through a manoeuvre
         (motion.adapted_sigma_alpha)."""
         cfg = self.slam.cfg
+        span = cfg.adapt_window + cfg.adapt_lag
+        t_keep = t - max(span, 1.05 * cfg.adapt_alpha_lag)
+        hist = [h for h in self.v_hist if h[0] >= t_keep]
+        hist.append((t, x[V_SLICE].copy(), var_v, x[W_SLICE].copy(), var_w))
+        rate = float(np.linalg.norm(x[W_SLICE]))
+        if not turning(cfg, rate):                  # both rules keep the priors: not built
+            return hist, cfg.sigma_a, cfg.sigma_alpha
+        th, v, tr_v, w, tr_w = (np.array([h[k] for h in hist]) for k in range(5))
+        i = int(np.searchsorted(th, t - span))       # the linear rule's own span of the history
+        sigma_a = adapted_sigma_a(cfg, th[i:], v[i:], tr_v[i:], rate)
+        return hist, sigma_a, adapted_sigma_alpha(cfg, th, w, tr_w)
+
+    def _adapting(self, t: float) -> bool:
+        cfg = self.slam.cfg
         if not (cfg.adapt_sigma_a or cfg.adapt_sigma_alpha):
-            return
+            return False
         if self.t_start is None:
             self.t_start = t
-        if t - self.t_start < cfg.adapt_after:
-            return
-        x, P = self.state.x, self.state.P
-        self.v_hist.append((t, x[V_SLICE].copy(), float(np.trace(P[V_SLICE, V_SLICE])),
-                            x[W_SLICE].copy(), float(np.trace(P[W_SLICE, W_SLICE]))))
-        span = cfg.adapt_window + cfg.adapt_lag
-        while self.v_hist[0][0] < t - max(span, 1.05 * cfg.adapt_alpha_lag):
-            self.v_hist.pop(0)
-        th = np.array([h[0] for h in self.v_hist])
-        lin = self.v_hist[int(np.searchsorted(th, t - span)):]
-        sigma_a = adapted_sigma_a(cfg, th[len(th) - len(lin):], np.array([h[1] for h in lin]),
-                                  np.array([h[2] for h in lin]), float(np.linalg.norm(x[W_SLICE])))
-        sigma_alpha = adapted_sigma_alpha(cfg, th, np.array([h[3] for h in self.v_hist]),
-                                          np.array([h[4] for h in self.v_hist]))
+        return t - self.t_start >= cfg.adapt_after
+
+    def _adapt_impulse(self, t: float) -> None:
+        """Keep the estimates after this frame and set the impulses the next prediction takes."""
+        if self._adapting(t):
+            x, P = self.state.x, self.state.P
+            self.v_hist, sigma_a, sigma_alpha = self._impulses(t, x, float(np.trace(P[V_SLICE, V_SLICE])),
+                                                                float(np.trace(P[W_SLICE, W_SLICE])))
+            self._set_impulses(sigma_a, sigma_alpha)
+
+    def _set_impulses(self, sigma_a: float, sigma_alpha: float) -> None:
         if (sigma_a, sigma_alpha) != (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha):
-            self.motion_cfg = replace(cfg, sigma_a=sigma_a, sigma_alpha=sigma_alpha)
+            self.motion_cfg = replace(self.slam.cfg, sigma_a=sigma_a, sigma_alpha=sigma_alpha)
+
+    def _turn_began(self, t: float, fu: FrameUpdate, turn: list) -> bool:
+        """Whether a frame's updates ``fu``, not yet written, start a turn: the impulses after
+        them differ from the priors the frame was predicted with; if so they go in ``turn``."""
+        cfg = self.slam.cfg
+        impulses = self._impulses(t, fu.x, float(fu.variances(V_SLICE).sum()),
+                                  float(fu.variances(W_SLICE).sum()))[1:]
+        if impulses == (cfg.sigma_a, cfg.sigma_alpha):
+            return False
+        turn.extend(impulses)
+        return True
 
     @property
     def lost(self) -> bool:
@@ -256,6 +282,13 @@ class _Track:
         if lost:
             self.motion_cfg = cfg        # lost, the prior: nothing says how the camera moves now
         st.sigma_a, st.sigma_alpha = self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha
+        # Before the prediction, the camera's mean and rows of P (all a prediction changes), kept
+        # while a turn may begin in this frame (SlamConfig.adapt_onset).
+        cd = self.state.cam_dim
+        before = ((self.state.x.copy(), self.state.P[:cd].copy())
+                  if cfg.adapt_onset and not lost and self._adapting(t_prev)
+                  and (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha) == (cfg.sigma_a, cfg.sigma_alpha)
+                  else None)
         st.imu = self.propagate(t_prev, t, imu_rows, s.lost_noise_gain if lost else 1.0)
         counts = saved = None
         if lost:
@@ -273,7 +306,21 @@ class _Track:
         closed = (not lost and s.reacquire_after > 0 and s.loop_after > 0 and away >= s.loop_after
                   and (away - s.loop_after) % s.loop_every == 0 and self._close_loop(g, st, frame))
         if not closed:
-            self._measure(g, st, frame, retry_dt=None if lost or st.imu else t - t_prev)
+            turn: list = []
+            check = before is not None and not st.imu
+            if not self._measure(g, st, frame, retry_dt=None if lost or st.imu else t - t_prev,
+                                 accept=(lambda fu: not self._turn_began(t, fu, turn)) if check else None):
+                # A turn began in this frame, and the prior impulses took its unforeseen start
+                # partly as translation: predicted and measured again with the turn's impulses.
+                x, rows = before
+                self.state.x = x
+                self.state.P[:cd] = rows
+                self.state.P[:, :cd] = rows.T
+                self._set_impulses(*turn)
+                st.onset, st.retried = True, False
+                st.sigma_a, st.sigma_alpha = self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha
+                self.propagate(t_prev, t, None, 1.0)
+                self._measure(g, st, frame, retry_dt=t - t_prev)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
                 self.state.x, self.state.P = saved
@@ -397,9 +444,12 @@ class _Track:
         z[~found] = np.nan
         return pred, S, r_scale, visible, feats, z
 
-    def _measure(self, g: np.ndarray, st: FrameStats, frame: int, retry_dt: float | None = None) -> int:
+    def _measure(self, g: np.ndarray, st: FrameStats, frame: int, retry_dt: float | None = None,
+                 accept: Callable[[FrameUpdate], bool] | None = None) -> bool:
         """Search, RANSAC and update for this frame; ``retry_dt`` : the constant-velocity
-        prediction's interval, s, when a frame most searches miss may be searched again."""
+        prediction's interval, s, when a frame most searches miss may be searched again;
+        ``accept`` : shown the updates before they are written (one_point_ransac). False when it
+        refused them: the state and the features' records are as they were."""
         slam = self.slam
         s, cam = slam.settings, slam.cam
         pred, S, r_scale, visible, feats, z = self._search(g)
@@ -432,13 +482,17 @@ class _Track:
                                np.zeros(m, bool), pred.ks.copy())
         if not found.any():
             self.score -= 0.5 * s.ambiguity_gate_chi2 * m
-            return visible
+            return True
         fi = np.flatnonzero(found)
         sub = pred.take(fi)
         rng = np.random.default_rng((slam.seed, frame))
         res = one_point_ransac(self.state, sub.ks, z[fi], cam, slam.cfg.sigma_pixel**2, sub, S[fi],
                                s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
-                               r_scale[fi], votes=self._votes(sub.ks))
+                               r_scale[fi], votes=self._votes(sub.ks), accept=accept)
+        if res.refused:
+            for f in feats:             # the search counted as not made (the votes read it first)
+                f.attempts -= 1
+            return False
         for j, k in enumerate(sub.ks):
             if res.used[j]:
                 self.features[k].successes += 1
@@ -466,7 +520,7 @@ class _Track:
         gate = s.ambiguity_gate_chi2
         d2 = np.where(res.used, np.minimum(d2, gate), gate)
         self.score -= 0.5 * (d2.sum() + gate * (m - len(fi)))
-        return visible
+        return True
 
     def _grow_impulse(self, dt: float, gain: float) -> None:
         """The camera block's covariance as if the constant-velocity prediction over ``dt`` had

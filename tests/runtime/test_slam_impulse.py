@@ -174,4 +174,4 @@ def test_wvr_slam_fixed_impulses_turns_both_adaptations_off(monkeypatch, tmp_pat
     with pytest.raises(_Captured) as got:
         main(["slam", str(tmp_path / "seq"), "--out", str(tmp_path / "out")] + flag)
     cfg = got.value.args[0]
-    assert cfg.adapt_sigma_a is adapting and cfg.adapt_sigma_alpha is adapting
+    assert cfg.adapt_sigma_a is adapting and cfg.adapt_sigma_alpha is adapting and cfg.adapt_onset is adapting

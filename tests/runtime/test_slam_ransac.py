@@ -262,3 +262,32 @@ def test_the_tracker_votes_by_each_features_record():
                       for i, (a, s) in enumerate(records)]
     np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
     np.testing.assert_allclose(track._votes(np.array([3, 1])), [1 / 3, 61 / 62])
+
+
+def test_updates_refused_before_they_are_written_leave_the_state_as_it_was():
+    """``accept`` sees the frame's updates before the state does: the mean and the variances it
+    is shown are the ones a commit writes; refused, the state is bit for bit as before and no
+    match is used; accepted, the result is RANSAC's without the hook."""
+    s, ks, z, pred, S_prior, out, _ = scene(3)
+    x0, P0 = s.x.copy(), s.P.copy()
+    seen = []
+
+    def look(fu):
+        seen.append((fu.x.copy(), fu.variances(slice(0, 13))))
+        return False
+
+    res = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, S.ransac_max_hypotheses,
+                           S.ransac_confidence, RESCUE_99, np.random.default_rng(0), accept=look)
+    assert res.refused and not res.used.any() and len(seen) == 1
+    assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0)
+    plain = s.copy()
+    res_plain = ransac(plain, ks, z, pred, S_prior, 0)
+    res_ok = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, S.ransac_max_hypotheses,
+                              S.ransac_confidence, RESCUE_99, np.random.default_rng(0), accept=lambda fu: True)
+    assert not res_ok.refused and np.array_equal(res_ok.used, res_plain.used) and res_plain.used.any()
+    assert np.array_equal(s.x, plain.x) and np.array_equal(s.P, plain.P)
+    x_seen, var_seen = seen[0]
+    np.testing.assert_array_equal(x_seen, plain.x)
+    keep = np.r_[0:3, 7:13]                    # the quaternion's rows change at the commit's normalisation
+    np.testing.assert_allclose(var_seen[keep], np.diag(plain.P)[keep], rtol=1e-9)
+    assert (var_seen[keep] < np.diag(P0)[keep]).all()
