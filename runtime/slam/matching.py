@@ -5,9 +5,11 @@ cross-correlation at every pixel inside its 3-sigma ellipse, with a parabolic su
 
 The score is ``2 (1 - ZNCC)`` as in search.py (0 for identical patches up to gain and offset,
 2 for unrelated ones); a warped template that matches nothing is retried as first seen (the
-plane guess may be wrong). The templates are warped in one compiled pass; the correlation is
-OpenCV's ``matchTemplate`` over each ellipse's box (faster than compiled loops here); windows
-too flat to hold a match are excluded by their variance.
+plane guess may be wrong). The templates are warped in one compiled pass and every feature is
+searched, matched and refined in another (a call per frame, not per feature: the per-feature
+calls into OpenCV and back cost more than the correlation). The correlation is computed only
+inside each ellipse, a row's chord at a time; windows too flat to hold a match are excluded by
+their variance.
 
 The best position is refined to sub-pixel precision by Gauss-Newton on the template under an
 affine warp about its centre (Lucas-Kanade, inverse compositional; the shape is damped towards
@@ -21,7 +23,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from kinematics.camera import CameraIntrinsics, lens_kernel_args
@@ -82,48 +83,94 @@ def _warp(patch, H, t):
 
 
 @compiled_kernel()
-def _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2):
-    """The least score ``2 (1 - ZNCC)`` among the window positions inside the ellipse ``n2`` of
-    S at uv (``ncc`` (nv, nu): OpenCV's TM_CCOEFF_NORMED of the template over ``roi``, the
-    image from pixel (u0 - h, v0 - h), so that ncc[j, i] is the window centred on (u0 + i,
-    v0 + j)), flat windows excluded, with a parabolic sub-pixel fit through the neighbours in
-    each direction when both are inside. Returns (u, v, score); score 2 if none."""
-    nv, nu = ncc.shape
-    # The windows' sums and sums of squares from the region's own integral images (the region
-    # is what matchTemplate read: a few thousand pixels, not the whole image).
-    rh, rw = roi.shape
+def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
+    """The scores ``2 (1 - ZNCC)`` (nv, nu) of the (t, t) template ``tpl`` against the windows
+    of ``grey`` centred on (u0 + i, v0 + j), at the positions inside the ellipse ``(p - uv)^T
+    S^-1 (p - uv) <= n2`` (``S^-1 = [[iaa, iab], [iab, ibb]]``) whose windows are not flat; inf
+    elsewhere. The windows' sums and sums of squares come from the region's own integral images
+    (a few thousand pixels, not the whole image); a flat template scores 2 everywhere (OpenCV's
+    TM_CCOEFF_NORMED gives it 0)."""
+    t = tpl.shape[0]
+    h = t // 2
+    n = t * t
+    W = grey.shape[1]
+    flat = grey.ravel()
+    T = np.empty((t, t))
+    mean = 0.0
+    for b in range(t):
+        for a in range(t):
+            mean += tpl[b, a]
+    mean /= n
+    tn2 = 0.0
+    for b in range(t):
+        for a in range(t):
+            T[b, a] = tpl[b, a] - mean
+            tn2 += T[b, a] * T[b, a]
+    rh, rw = nv + 2 * h, nu + 2 * h
+    y0, x0 = v0 - h, u0 - h
     ii = np.zeros((rh + 1, rw + 1))
     ii2 = np.zeros((rh + 1, rw + 1))
     for y in range(rh):
         row = 0.0
         row2 = 0.0
         for x in range(rw):
-            g = np.float64(roi[y, x])
+            g = np.float64(grey[y0 + y, x0 + x])
             row += g
             row2 += g * g
             ii[y + 1, x + 1] = ii[y, x + 1] + row
             ii2[y + 1, x + 1] = ii2[y, x + 1] + row2
-    a, b, c = S[0, 0], S[0, 1], S[1, 1]
-    det = a * c - b * b
-    iaa, iab, ibb = c / det, -b / det, a / det
-    t = 2 * h + 1
-    n = t * t
     grid = np.full((nv, nu), np.inf)
-    best, bi, bj = np.inf, -1, -1
+    if tn2 <= 0.0:
+        T[:, :] = 0.0
+        tn2 = 1.0
+    corr = np.empty(nu)
     for j in range(nv):
-        dv = v0 + j - uv[1]
-        for i in range(nu):
-            du = u0 + i - uv[0]
+        dv = v0 + j - uv1
+        # The ellipse's chord on this row, a pixel wider each side (the test below is exact).
+        disc = (iab * dv) ** 2 - iaa * (ibb * dv * dv - n2)
+        if disc < 0.0:
+            continue
+        r = math.sqrt(disc)
+        lo = max(int(math.floor((-iab * dv - r) / iaa + uv0 - u0)) - 1, 0)
+        hi = min(int(math.ceil((-iab * dv + r) / iaa + uv0 - u0)) + 1, nu - 1)
+        if hi < lo:
+            continue
+        # The correlation along the chord, a template pixel at a time: a contiguous run the
+        # compiler vectorises (unsigned indices: no negative-index wraparound to check).
+        corr[lo:hi + 1] = 0.0
+        run = np.uint64(hi + 1 - lo)
+        for b in range(t):
+            base = np.uint64((y0 + j + b) * W + x0 + lo)
+            for a in range(t):
+                w = T[b, a]
+                at = base + np.uint64(a)
+                for i in range(run):
+                    corr[lo + i] += w * flat[at + i]
+        for i in range(lo, hi + 1):
+            du = u0 + i - uv0
             if iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv > n2:
                 continue
             sw = ii[j + t, i + t] - ii[j, i + t] - ii[j + t, i] + ii[j, i]
             sw2 = ii2[j + t, i + t] - ii2[j, i + t] - ii2[j + t, i] + ii2[j, i]
-            if sw2 - sw * sw / n < FLAT_VARIANCE * n:
+            var = sw2 - sw * sw / n
+            if var < FLAT_VARIANCE * n:
                 continue
-            s = 2.0 * (1.0 - ncc[j, i])
-            grid[j, i] = s
-            if s < best:
-                best, bi, bj = s, i, j
+            ncc = min(max(corr[i] / math.sqrt(tn2 * var), -1.0), 1.0)
+            grid[j, i] = 2.0 * (1.0 - ncc)
+    return grid
+
+
+@compiled_kernel()
+def _best_in_grid(grid):
+    """The least score in ``grid`` (nv, nu) (inf: not a candidate) with a parabolic sub-pixel
+    fit through the neighbours in each direction when both are candidates: (i + su, j + sv,
+    score); score 2 and NaN offsets if there is none."""
+    nv, nu = grid.shape
+    best, bi, bj = np.inf, -1, -1
+    for j in range(nv):
+        for i in range(nu):
+            if grid[j, i] < best:
+                best, bi, bj = grid[j, i], i, j
     if bi < 0:
         return np.nan, np.nan, 2.0
     su = sv = 0.0
@@ -131,7 +178,7 @@ def _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2):
         su = _parabola(grid[bj, bi - 1], best, grid[bj, bi + 1])
     if 0 < bj < nv - 1 and np.isfinite(grid[bj - 1, bi]) and np.isfinite(grid[bj + 1, bi]):
         sv = _parabola(grid[bj - 1, bi], best, grid[bj + 1, bi])
-    return u0 + bi + su, v0 + bj + sv, best
+    return bi + su, bj + sv, best
 
 
 @compiled_kernel()
@@ -144,14 +191,27 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
     H, W = img.shape
     t = tpl.shape[0]
     h = t // 2
-    T = tpl.astype(np.float64)
-    T = T - T.mean()
-    nt = math.sqrt((T * T).sum())
+    n = t * t
+    T = np.empty((t, t))
+    mean = 0.0
+    for b in range(t):
+        for a in range(t):
+            mean += tpl[b, a]
+    mean /= n
+    nt = 0.0
+    for b in range(t):
+        for a in range(t):
+            T[b, a] = tpl[b, a] - mean
+            nt += T[b, a] * T[b, a]
+    nt = math.sqrt(nt)
     if nt < 1e-9:
         return u, v, False
-    T /= nt
-    n = t * t
+    for b in range(t):
+        for a in range(t):
+            T[b, a] /= nt
+    # Steepest-descent images (n, 6) and the damped Gauss-Newton matrix, Cholesky-factored.
     SD = np.empty((n, 6))
+    Hs = np.zeros((6, 6))
     k = 0
     for b in range(t):
         for a in range(t):
@@ -161,41 +221,54 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
             gy = (T[b1, a] - T[b0, a]) / (b1 - b0)
             x, y = a - h, b - h
             SD[k, 0], SD[k, 1], SD[k, 2], SD[k, 3], SD[k, 4], SD[k, 5] = gx * x, gy * x, gx * y, gy * y, gx, gy
+            for i in range(6):
+                for j in range(i + 1):
+                    Hs[i, j] += SD[k, i] * SD[k, j]
             k += 1
-    Hs = SD.T @ SD
     for i in range(4):
         Hs[i, i] += reg
-    if abs(np.linalg.det(Hs)) < 1e-18:
-        return u, v, False
-    Hinv = np.linalg.inv(Hs)
-    A = np.eye(2)                     # the current warp: x_img = A x + (u, v)
+    L = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(i + 1):
+            acc = Hs[i, j]
+            for q in range(j):
+                acc -= L[i, q] * L[j, q]
+            if i == j:
+                if not acc > 1e-12:
+                    return u, v, False
+                L[i, i] = math.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0          # the current warp: x_img = A x + (u, v)
     cu, cv = u, v
     Wv = np.empty(n)
+    g = np.empty(6)
+    dp = np.empty(6)
     for _ in range(iterations):
         k = 0
-        ok = True
+        wsum = 0.0
         for b in range(t):
             for a in range(t):
                 x, y = a - h, b - h
-                px = A[0, 0] * x + A[0, 1] * y + cu
-                py = A[1, 0] * x + A[1, 1] * y + cv
+                px = a00 * x + a01 * y + cu
+                py = a10 * x + a11 * y + cv
                 if not (0.0 <= px < W - 1 and 0.0 <= py < H - 1):
-                    ok = False
-                    break
+                    return u, v, False
                 ix, iy = int(px), int(py)
                 fx, fy = px - ix, py - iy
                 Wv[k] = ((1 - fx) * (1 - fy) * img[iy, ix] + fx * (1 - fy) * img[iy, ix + 1]
                          + (1 - fx) * fy * img[iy + 1, ix] + fx * fy * img[iy + 1, ix + 1])
+                wsum += Wv[k]
                 k += 1
-            if not ok:
-                break
-        if not ok:
-            return u, v, False
-        Wv -= Wv.mean()
-        nw = math.sqrt((Wv * Wv).sum())
+        wmean = wsum / n
+        nw = 0.0
+        for k in range(n):
+            Wv[k] -= wmean
+            nw += Wv[k] * Wv[k]
+        nw = math.sqrt(nw)
         if nw < 1e-9:
             return u, v, False
-        g = np.zeros(6)
+        g[:] = 0.0
         k = 0
         for b in range(t):
             for a in range(t):
@@ -203,15 +276,26 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
                 for i in range(6):
                     g[i] += SD[k, i] * e
                 k += 1
-        dp = Hinv @ g
+        for i in range(6):                             # dp = Hs^-1 g by the Cholesky factor
+            acc = g[i]
+            for q in range(i):
+                acc -= L[i, q] * dp[q]
+            dp[i] = acc / L[i, i]
+        for i in range(5, -1, -1):
+            acc = dp[i]
+            for q in range(i + 1, 6):
+                acc -= L[q, i] * dp[q]
+            dp[i] = acc / L[i, i]
         # Inverse compositional: W <- W o W(dp)^-1, W(dp) = [[1 + p0, p2], [p1, 1 + p3]] x + (p4, p5)
-        D = np.array([[1.0 + dp[0], dp[2]], [dp[1], 1.0 + dp[3]]])
-        dd = 1.0 / (D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0])
-        Di = np.array([[D[1, 1] * dd, -D[0, 1] * dd], [-D[1, 0] * dd, D[0, 0] * dd]])
-        ti = -(Di @ np.array([dp[4], dp[5]]))
-        cu, cv = A[0, 0] * ti[0] + A[0, 1] * ti[1] + cu, A[1, 0] * ti[0] + A[1, 1] * ti[1] + cv
-        A = A @ Di
-        if abs(cu - u) > 1.0 or abs(cv - v) > 1.0 or not (0.5 < abs(np.linalg.det(A)) < 2.0):
+        d00, d01, d10, d11 = 1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]
+        dd = 1.0 / (d00 * d11 - d01 * d10)
+        i00, i01, i10, i11 = d11 * dd, -d01 * dd, -d10 * dd, d00 * dd
+        t0 = -(i00 * dp[4] + i01 * dp[5])
+        t1 = -(i10 * dp[4] + i11 * dp[5])
+        cu, cv = a00 * t0 + a01 * t1 + cu, a10 * t0 + a11 * t1 + cv
+        a00, a01, a10, a11 = (a00 * i00 + a01 * i10, a00 * i01 + a01 * i11,
+                              a10 * i00 + a11 * i10, a10 * i01 + a11 * i11)
+        if abs(cu - u) > 1.0 or abs(cv - v) > 1.0 or not (0.5 < abs(a00 * a11 - a01 * a10) < 2.0):
             return u, v, False
         if dp[4] * dp[4] + dp[5] * dp[5] < tol * tol and abs(dp[0]) + abs(dp[1]) + abs(dp[2]) + abs(dp[3]) < tol:
             break
@@ -263,14 +347,15 @@ def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, 
     return out, done
 
 
-def _search(grey, tpl, uv, S, n2, max_area, max_score):
+@compiled_kernel(_zncc_in_ellipse, _best_in_grid, refine_affine_kernel)
+def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
     """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none); only a
     match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
-    a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
-    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(uv[0])
-            and math.isfinite(uv[1]) and a * c - b * b > 0):
+    a, b, c = S[0, 0], S[0, 1], S[1, 1]
+    if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(uv[0])
+            and np.isfinite(uv[1]) and a * c - b * b > 0):
         return np.nan, np.nan, 2.0
     hu, hv = math.sqrt(n2 * a), math.sqrt(n2 * c)
     if (2 * hu + 1) * (2 * hv + 1) > max_area:
@@ -279,14 +364,33 @@ def _search(grey, tpl, uv, S, n2, max_area, max_score):
     v0, v1 = max(math.floor(uv[1] - hv), h), min(math.ceil(uv[1] + hv), H - 1 - h)
     if u1 < u0 or v1 < v0:
         return np.nan, np.nan, 2.0
-    roi = grey[v0 - h:v1 + h + 1, u0 - h:u1 + h + 1]
-    ncc = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
-    u, v, s = _best_in_ellipse(ncc, roi, u0, v0, h, uv, S, n2)
-    if np.isfinite(u) and s <= max_score:
+    det = a * c - b * b
+    grid = _zncc_in_ellipse(grey, tpl, u0, v0, u1 - u0 + 1, v1 - v0 + 1, uv[0], uv[1], c / det, -b / det, a / det, n2)
+    du, dv, s = _best_in_grid(grid)
+    if not np.isfinite(du):
+        return np.nan, np.nan, 2.0
+    u, v = u0 + du, v0 + dv
+    if s <= max_score:
         ur, vr, ok = refine_affine_kernel(grey, tpl, u, v, 10, 0.005, AFFINE_DAMPING)
         if ok:
             u, v = ur, vr
     return u, v, s
+
+
+@compiled_kernel(_search_one)
+def search_kernel(grey, tpls, templates, warped, uv, S, n2, max_area, max_score):
+    """Every feature's match: z (m, 2) px (NaN: none in its ellipse) and score (m,); a warped
+    template (``tpls[i]`` with ``warped[i]``) that matches nothing is retried as first seen
+    (``templates[i]``)."""
+    m = tpls.shape[0]
+    z = np.full((m, 2), np.nan)
+    score = np.full(m, 2.0)
+    for i in range(m):
+        u, v, s = _search_one(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
+        if s > max_score and warped[i]:
+            u, v, s = _search_one(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
+        z[i, 0], z[i, 1], score[i] = u, v, s
+    return z, score
 
 
 def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarray,
@@ -323,11 +427,8 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
     model, lens = lens_kernel_args(cam)
     tpls, warped = warp_kernel(templates, patches, use, rays0, normals, r0s, np.ascontiguousarray(Y, float),
                                np.ascontiguousarray(x_v[:3], float), quat_to_rotation(x_v[3:7]), model, lens)
-    n2 = n_sigma * n_sigma
-    for i in range(m):
-        u, v, s = _search(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
-        if s > max_score and warped[i]:
-            u, v, s = _search(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
-        z[i], score[i] = (u, v), s
+    z, score = search_kernel(np.ascontiguousarray(grey, np.float32), tpls, templates, warped,
+                             np.ascontiguousarray(uv, float), np.ascontiguousarray(S, float),
+                             n_sigma * n_sigma, float(max_area), float(max_score))
     found = score <= max_score
     return z, score, found

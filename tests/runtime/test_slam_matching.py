@@ -45,3 +45,33 @@ def test_a_feature_moved_outside_its_ellipse_is_not_found():
         uv = np.array([320.0 + 7 * seed, 240.0 - 5 * seed])
         z, found = search_at(textured(seed), uv, np.array([12.0, 0.0]), sigma_px=1.5)
         assert not found, (seed, z)
+
+
+def test_the_scores_inside_the_ellipse_are_opencvs_zncc_and_flat_windows_are_left_out():
+    """The compiled search's scores against an independent ZNCC, OpenCV's TM_CCOEFF_NORMED over
+    the ellipse's box: equal (2 (1 - ZNCC)) at every position inside a tilted ellipse whose
+    window is not flat, and no score outside it or on a flat window."""
+    from runtime.slam.matching import FLAT_VARIANCE, _zncc_in_ellipse
+
+    for seed in range(3):
+        img = textured(seed, (240, 320))
+        img[112:130, 165:190] = 77.0                           # a flat stretch some windows cover
+        tpl = np.ascontiguousarray(img[60 + seed:69 + seed, 40:49])
+        uv = np.array([171.3 + seed, 118.6])
+        S = np.array([[40.0, 18.0], [18.0, 25.0]])
+        Si = np.linalg.inv(S)
+        h = tpl.shape[0] // 2
+        u0, v0, nu, nv = 150, 100, 44, 38
+        grid = _zncc_in_ellipse(img, tpl, u0, v0, nu, nv, uv[0], uv[1], Si[0, 0], Si[0, 1], Si[1, 1], 9.0)
+        roi = img[v0 - h:v0 + nv + h, u0 - h:u0 + nu + h]
+        ncc = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
+        win_var = cv2.boxFilter(roi * roi, -1, (9, 9), normalize=True)[h:-h, h:-h] \
+            - cv2.boxFilter(roi, -1, (9, 9), normalize=True)[h:-h, h:-h] ** 2
+        jj, ii = np.mgrid[0:nv, 0:nu]
+        d = np.stack([u0 + ii - uv[0], v0 + jj - uv[1]], -1)
+        inside = np.einsum("...i,ij,...j->...", d, Si, d) <= 9.0
+        scored = inside & (win_var >= FLAT_VARIANCE + 1e-3)
+        assert scored.sum() > 300 and (inside & (win_var < FLAT_VARIANCE - 1e-3)).sum() > 50, seed
+        np.testing.assert_allclose(grid[scored], 2 * (1 - ncc[scored]), atol=2e-4)
+        assert np.isinf(grid[~inside]).all()
+        assert np.isinf(grid[inside & (win_var < FLAT_VARIANCE - 1e-3)]).all()
