@@ -12,7 +12,7 @@ import numba
 _KERNEL_SOURCES: dict = {}
 
 
-def compiled_kernel(*callees, fastmath: bool = False):
+def compiled_kernel(*callees, fastmath: bool | set = False):
     """Decorator: ``numba.njit(cache=True, error_model="numpy")`` for a kernel of this package,
     which may call the compiled functions ``callees`` of other modules.
 
@@ -24,7 +24,8 @@ def compiled_kernel(*callees, fastmath: bool = False):
     this numba has none, kernels with callees elsewhere are compiled without an on-disk cache
     (correct, only slower to start). ``error_model="numpy"``: a division by zero gives inf/NaN
     instead of raising, as in numpy. ``fastmath``: let LLVM reassociate sums (vectorised
-    reductions) in kernels whose results do not depend on the order of a sum's terms.
+    reductions) in kernels whose results do not depend on the order of a sum's terms; a set
+    of numba's flags (e.g. ``{"contract", "reassoc"}``) keeps NaN and inf semantics.
     """
     def decorate(fn):
         files = {inspect.getsourcefile(fn)}

@@ -82,20 +82,21 @@ def _warp(patch, H, t):
     return out, True
 
 
-@compiled_kernel()
+@compiled_kernel(fastmath={"contract", "reassoc"})
 def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     """The scores ``2 (1 - ZNCC)`` (nv, nu) of the (t, t) template ``tpl`` against the windows
     of ``grey`` centred on (u0 + i, v0 + j), at the positions inside the ellipse ``(p - uv)^T
     S^-1 (p - uv) <= n2`` (``S^-1 = [[iaa, iab], [iab, ibb]]``) whose windows are not flat; inf
     elsewhere. The windows' sums and sums of squares come from the region's own integral images
-    (a few thousand pixels, not the whole image); a flat template scores 2 everywhere (OpenCV's
-    TM_CCOEFF_NORMED gives it 0)."""
+    (a few thousand pixels, not the whole image); the correlations are float32 sums, as OpenCV's
+    TM_CCOEFF_NORMED (scores within 1e-5 of it); a flat template scores 2 everywhere (OpenCV
+    gives it 0)."""
     t = tpl.shape[0]
     h = t // 2
     n = t * t
     W = grey.shape[1]
     flat = grey.ravel()
-    T = np.empty((t, t))
+    T = np.empty((t, t), np.float32)
     mean = 0.0
     for b in range(t):
         for a in range(t):
@@ -123,7 +124,7 @@ def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     if tn2 <= 0.0:
         T[:, :] = 0.0
         tn2 = 1.0
-    corr = np.empty(nu)
+    corr = np.empty(nu, np.float32)
     for j in range(nv):
         dv = v0 + j - uv1
         # The ellipse's chord on this row, a pixel wider each side (the test below is exact).
