@@ -353,19 +353,20 @@ def add_inverse_depth_features(state: State, uvs, cam: CameraIntrinsics, rho0: f
         P_yx = J_x P_pose,:       P_yiyj = J_xi P_pose J_xj^T (+ J_uv R J_uv^T + sigma_rho^2 e e^T for i = j)
     """
     R = pixel_covariance(R_pix)
-    inits = [inverse_depth.init_from_pixel(state.x[:state.cam_dim], uv, cam, rho0) for uv in np.asarray(uvs, float)]
-    inits = [it for it in inits if np.isfinite(it[0]).all()]
-    if not inits:
+    y, A, J_x, J_uv = inverse_depth.init_from_pixels(state.x[:state.cam_dim], uvs, cam, rho0)
+    ok = np.isfinite(y).all(axis=1)
+    if not ok.any():
         return []
-    Jp = np.concatenate([J_x[:, :POSE_DIM] for _, _, J_x, _ in inits])          # (6m, 7)
+    y, J_x, J_uv = y[ok], J_x[ok], J_uv[ok]
+    m = len(y)
+    Jp = J_x[:, :, :POSE_DIM].reshape(6 * m, POSE_DIM)                          # (6m, 7)
     P_yx = Jp @ state.P[:POSE_DIM, :]
     P_yy = P_yx[:, :POSE_DIM] @ Jp.T
-    for i, (_, _, _, J_uv) in enumerate(inits):
+    for i in range(m):
         blk = slice(6 * i, 6 * i + 6)
-        P_yy[blk, blk] += J_uv @ R @ J_uv.T
+        P_yy[blk, blk] += J_uv[i] @ R @ J_uv[i].T
         P_yy[6 * i + 5, 6 * i + 5] += sigma_rho**2
-    return state.add_features([INVERSE_DEPTH] * len(inits), np.concatenate([y for y, _, _, _ in inits]), P_yy, P_yx,
-                              np.array([A for _, A, _, _ in inits]))
+    return state.add_features([INVERSE_DEPTH] * m, y.reshape(-1), P_yy, P_yx, np.repeat(A[None], m, axis=0))
 
 
 def add_point_feature(state: State, uv, depth: float, var_depth: float, R_pix, cam: CameraIntrinsics) -> int:

@@ -713,6 +713,8 @@ class _Track:
         order (out of view first, inverse-depth before points, seen longest ago first)."""
         s = self.slam.settings
         state = self.state
+        inv = np.flatnonzero(state.kinds == INVERSE_DEPTH)
+        behind = set(inv[state.x[state.starts[inv] + 5] < 0].tolist())   # rho < 0
         bad = []
         for k, f in enumerate(self.features):
             if f.known:
@@ -725,7 +727,7 @@ class _Track:
                 # Its innovations over the window fail the chi-square test: not a fixed point
                 # (a T-junction of a near edge and a far background, a reflection).
                 bad.append(k)
-            elif state.kinds[k] == INVERSE_DEPTH and state.feature(k)[5] < 0:
+            elif k in behind:
                 bad.append(k)          # its depth went behind the first view: a mismatch's trace
         excess = len(self.features) - len(bad) - s.max_features
         if excess > 0:

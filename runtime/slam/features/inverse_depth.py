@@ -176,19 +176,33 @@ def init_from_pixel(x_v, uv, cam: CameraIntrinsics, rho0: float
     are those of the ray in the first view's optical frame; their dependence on q goes through
     ``A^T R(q) h`` with the anchor ``A`` held at the current estimate.
     """
+    y, A, J_x, J_uv = init_from_pixels(x_v, np.asarray(uv, float).reshape(1, 2), cam, rho0)
+    return y[0], A, J_x[0], J_uv[0]
+
+
+def init_from_pixels(x_v, uvs, cam: CameraIntrinsics, rho0: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`init_from_pixel` for the pixels ``uvs`` (m, 2) seen from one camera, the lens
+    inverted once for all: y (m, 6), the anchor (3, 3) they share, dy/dx_v (m, 6, len(x_v)) and
+    dy/duv (m, 6, 2). A pixel the lens cannot unproject gives NaN rows."""
     x_v = np.asarray(x_v, float)
     q = x_v[Q_SLICE]
     A = quat_to_rotation(q)
-    h_c, J_h = unproject_jacobian(cam, np.asarray(uv, float).reshape(1, 2))
-    h_c, J_h = h_c[0], J_h[0]                        # (3,), (3, 2): the ray, z = 1
-    theta, phi, J_ang = angles_and_jacobian(h_c)     # the anchor is this camera: m_a = h_c
-    y = np.array([*x_v[R_SLICE], theta, phi, rho0])
-    J_x = np.zeros((6, len(x_v)))
-    J_x[0:3, R_SLICE] = np.eye(3)
+    uvs = np.asarray(uvs, float).reshape(-1, 2)
+    m = len(uvs)
+    rays, J_rays = unproject_jacobian(cam, uvs)      # (m, 3), (m, 3, 2): the rays, z > 0
     dR = rotation_derivatives(q)                      # m_a(q) = A^T R(q) h_c
-    dm_dq = np.stack([A.T @ dR[i] @ h_c for i in range(4)], axis=1)   # (3, 4)
-    J_x[3:5, Q_SLICE] = J_ang @ dm_dq
-    J_uv = np.zeros((6, 2))
-    J_uv[3:5] = J_ang @ J_h
-    assert J_x.shape[1] >= POSE_DIM
+    AdR = np.einsum("ji,kjl->kil", A, dR)             # (4, 3, 3): A^T dR_k
+    y = np.empty((m, 6))
+    J_x = np.zeros((m, 6, len(x_v)))
+    J_uv = np.zeros((m, 6, 2))
+    for i in range(m):
+        h_c = rays[i]
+        theta, phi, J_ang = angles_and_jacobian(h_c)  # the anchor is this camera: m_a = h_c
+        y[i, :3] = x_v[R_SLICE]
+        y[i, 3:] = theta, phi, rho0
+        J_x[i, 0:3, R_SLICE] = np.eye(3)
+        J_x[i, 3:5, Q_SLICE] = J_ang @ (AdR @ h_c).T
+        J_uv[i, 3:5] = J_ang @ J_rays[i]
+    assert J_x.shape[2] >= POSE_DIM
     return y, A, J_x, J_uv
