@@ -82,6 +82,24 @@ def _warp(patch, H, t):
     return out, True
 
 
+@compiled_kernel()
+def _zero_mean_into(tpl, T):
+    """``T`` (t, t) <- the template ``tpl`` less its mean (in ``T``'s precision); returns the
+    sum of ``T``'s squares."""
+    t = tpl.shape[0]
+    mean = 0.0
+    for b in range(t):
+        for a in range(t):
+            mean += tpl[b, a]
+    mean /= t * t
+    ss = 0.0
+    for b in range(t):
+        for a in range(t):
+            T[b, a] = tpl[b, a] - mean
+            ss += T[b, a] * T[b, a]
+    return ss
+
+
 @compiled_kernel(fastmath={"contract", "reassoc"})
 def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     """The scores ``2 (1 - ZNCC)`` (nv, nu) of the (t, t) template ``tpl`` against the windows
@@ -97,16 +115,7 @@ def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     W = grey.shape[1]
     flat = grey.ravel()
     T = np.empty((t, t), np.float32)
-    mean = 0.0
-    for b in range(t):
-        for a in range(t):
-            mean += tpl[b, a]
-    mean /= n
-    tn2 = 0.0
-    for b in range(t):
-        for a in range(t):
-            T[b, a] = tpl[b, a] - mean
-            tn2 += T[b, a] * T[b, a]
+    tn2 = _zero_mean_into(tpl, T)
     rh, rw = nv + 2 * h, nu + 2 * h
     y0, x0 = v0 - h, u0 - h
     ii = np.zeros((rh + 1, rw + 1))
@@ -194,17 +203,7 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
     h = t // 2
     n = t * t
     T = np.empty((t, t))
-    mean = 0.0
-    for b in range(t):
-        for a in range(t):
-            mean += tpl[b, a]
-    mean /= n
-    nt = 0.0
-    for b in range(t):
-        for a in range(t):
-            T[b, a] = tpl[b, a] - mean
-            nt += T[b, a] * T[b, a]
-    nt = math.sqrt(nt)
+    nt = math.sqrt(_zero_mean_into(tpl, T))
     if nt < 1e-9:
         return u, v, False
     for b in range(t):
