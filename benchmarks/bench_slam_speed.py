@@ -9,6 +9,11 @@ Targets: at 320x240 with 20-30 features measured per frame at least 300 frames/s
 
 ``OMP_NUM_THREADS=1 python benchmarks/bench_slam_speed.py [--scenario walk] [--seed 2]
 [--seconds 12] [--csv FILE]``; recordings are kept in ``$WVR_BENCH_CACHE`` as bench_slam's.
+
+This machine's speed can move by a factor of two between runs, so a change is timed against
+the code before it in alternated runs: ``--against REF`` checks out the git revision REF beside
+this one and runs the two in turn, ``--rounds`` times each (30 measured), printing each run's
+frames/s median and the median over runs.
 """
 
 from __future__ import annotations
@@ -18,7 +23,9 @@ import cProfile
 import io
 import os
 import pstats
+import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -79,6 +86,54 @@ def timed_run(seq_path: Path, measure_max: int, profile: bool = False):
     return np.array(secs), np.array(sizes), np.array(matched), text
 
 
+def fps_runs(size: str, scenario: str, seed: int, seconds: float, runs: int) -> list[float]:
+    """Frames/s median of each of ``runs`` timed runs (30 measured) after a warm one."""
+    seq = recording(scenario, seed, SIZES[size], seconds)
+    timed_run(seq, 30)
+    return [float(1.0 / np.median(timed_run(seq, 30)[0])) for _ in range(runs)]
+
+
+def against(ref: str, a) -> int:
+    """Alternated runs of the checkout at git revision ``ref`` and this one (module docstring)."""
+    here = Path(__file__).resolve().parent
+    root = here.parent
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", "--short", f"{ref}^{{commit}}"],
+                         capture_output=True, text=True)
+    if rev.returncode != 0:
+        print(f"bench_slam_speed: --against {ref}: not a git revision of {root}; give a commit, tag or branch",
+              file=sys.stderr)
+        return 2
+    from bench_slam import CACHE
+    env = dict(os.environ, WVR_BENCH_CACHE=str(CACHE), OMP_NUM_THREADS="1")
+    runs: dict = {}
+    with tempfile.TemporaryDirectory(prefix="wvr-against-") as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", "-q", str(tree), rev.stdout.strip()],
+                       check=True)
+        try:
+            sides = {f"{ref} ({rev.stdout.strip()})": tree, f"this checkout ({head.stdout.strip()})": root}
+            for r in range(a.rounds):
+                for name, path in sides.items():
+                    for size in SIZES:
+                        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--fps-only", size,
+                                              "--scenario", a.scenario, "--seed", str(a.seed), "--seconds",
+                                              str(a.seconds)],
+                                             env=dict(env, PYTHONPATH=str(path)), capture_output=True, text=True,
+                                             check=True)
+                        if not Path(out.stderr.strip().splitlines()[-1].split(" at ")[-1]).is_relative_to(path):
+                            raise RuntimeError(f"the run for {name} imported another checkout: {out.stderr.strip()}")
+                        fps = [float(v) for v in out.stdout.split()]
+                        runs.setdefault((name, size), []).extend(fps)
+                        print(f"round {r + 1}: {name}, {size}: " + ", ".join(f"{v:.0f}" for v in fps), flush=True)
+        finally:
+            subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(tree)], check=False)
+    print(f"\n| checkout | image | frames/s median over runs | range |\n|---|---|---|---|")
+    for (name, size), v in runs.items():
+        print(f"| {name} | {size} | {np.median(v):.0f} | {min(v):.0f}-{max(v):.0f} |")
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scenario", default="walk", help="twin scenario recorded (default walk)")
@@ -86,9 +141,22 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=12.0)
     p.add_argument("--measure", default="30,60", help="features measured per frame, at most (list; 60 is MapSettings' default)")
     p.add_argument("--csv", help="write the map-size curve there")
+    p.add_argument("--against", metavar="REF", help="alternate with the code at git revision REF (docstring)")
+    p.add_argument("--rounds", type=int, default=3, help="with --against: rounds of alternation")
+    p.add_argument("--fps-only", choices=list(SIZES), help=argparse.SUPPRESS)   # one side of --against
     a = p.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})     # one core
+    if a.fps_only:
+        import runtime
+        print(f"timing the runtime package at {Path(runtime.__file__).parent}", file=sys.stderr)
+        print(" ".join(f"{v:.2f}" for v in fps_runs(a.fps_only, a.scenario, a.seed, a.seconds, 3)))
+        return 0
+    if a.against:
+        if a.rounds < 1:
+            print(f"bench_slam_speed: --rounds {a.rounds}: give at least 1", file=sys.stderr)
+            return 2
+        return against(a.against, a)
     rows = []
     print("| image | measured at most | matched/frame (median) | frames/s median | frames/s p10 | target |")
     print("|---|---|---|---|---|---|")
