@@ -403,10 +403,8 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
     warped template finds nothing. ``grey`` : (H, W) float32. Returns z (m, 2) (NaN: not found),
     score (m,), found (m,)."""
     m = len(features)
-    z = np.full((m, 2), np.nan)
-    score = np.full(m, 2.0)
     if m == 0:
-        return z, score, np.zeros(0, bool)
+        return np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool)
     t = features[0].template.shape[0]
     ph = max((f.patch.shape[0] for f in features if f.patch is not None), default=t)
     templates = np.empty((m, t, t), np.float32)

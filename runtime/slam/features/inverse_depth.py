@@ -194,14 +194,14 @@ def init_from_pixels(x_v, uvs, cam: CameraIntrinsics, rho0: float
     dR = rotation_derivatives(q)                      # m_a(q) = A^T R(q) h_c
     AdR = np.einsum("ji,kjl->kil", A, dR)             # (4, 3, 3): A^T dR_k
     y = np.empty((m, 6))
+    y[:, :3] = x_v[R_SLICE]
     J_x = np.zeros((m, 6, len(x_v)))
+    J_x[:, 0:3, R_SLICE] = np.eye(3)
     J_uv = np.zeros((m, 6, 2))
     for i in range(m):
         h_c = rays[i]
         theta, phi, J_ang = angles_and_jacobian(h_c)  # the anchor is this camera: m_a = h_c
-        y[i, :3] = x_v[R_SLICE]
         y[i, 3:] = theta, phi, rho0
-        J_x[i, 0:3, R_SLICE] = np.eye(3)
         J_x[i, 3:5, Q_SLICE] = J_ang @ (AdR @ h_c).T
         J_uv[i, 3:5] = J_ang @ J_rays[i]
     assert J_x.shape[2] >= POSE_DIM
