@@ -34,7 +34,7 @@ from .quaternion import normalise_quaternion_jacobian
 from .state import POSE_DIM, Q_SLICE, TD_INDEX, SlamNumericalError, State, check_covariance, check_mean, mirror_upper
 
 __all__ = ["FeatureNotMeasurable", "UpdateResult", "FrameUpdate", "innovation_covariances", "update", "add_inverse_depth_feature",
-           "add_point_feature", "convert_to_point"]
+           "add_point_feature", "convert_to_point", "point_conversions"]
 
 
 class FeatureNotMeasurable(ValueError):
@@ -387,12 +387,19 @@ def add_point_feature(state: State, uv, depth: float, var_depth: float, R_pix, c
     return state.add_feature(POINT, y, P_yy, P_yx)
 
 
-def convert_to_point(state: State, k) -> None:
-    """Turn inverse-depth feature ``k`` (or each of a list) into a 3D point (first-order
-    covariance transform, one rebuild of ``P`` for all)."""
-    ks = [int(k) for k in np.atleast_1d(k)]
+def point_conversions(state: State, ks) -> tuple[list, list]:
+    """Inverse-depth features ``ks`` as 3D points: their parameters (3,) and the conversions'
+    Jacobians (3, 6), for :meth:`State.edit_features`."""
+    ks = [int(k) for k in np.atleast_1d(ks)]
     for k in ks:
         if state.kinds[k] != INVERSE_DEPTH:
             raise ValueError(f"feature {k} is a {state.kinds[k]} feature, not an inverse-depth one")
     conv = [inverse_depth.to_point(state.feature(k), state.anchors[k]) for k in ks]
-    state.convert_features(ks, POINT, [p for p, _ in conv], [J for _, J in conv])
+    return [p for p, _ in conv], [J for _, J in conv]
+
+
+def convert_to_point(state: State, k) -> None:
+    """Turn inverse-depth feature ``k`` (or each of a list) into a 3D point (first-order
+    covariance transform, one rebuild of ``P`` for all)."""
+    ys, Js = point_conversions(state, k)
+    state.convert_features([int(k) for k in np.atleast_1d(k)], POINT, ys, Js)

@@ -133,18 +133,40 @@ def mirror_upper(P):
 
 
 @compiled_kernel()
+def _runs(old_keep, new_keep):
+    """Where the moved entries' index pairs break: ``starts`` (r + 1,) such that within each
+    ``starts[q]:starts[q + 1]`` both ``old_keep`` and ``new_keep`` count up by one."""
+    m = len(old_keep)
+    starts = np.empty(m + 1, np.intp)
+    r = 0
+    for a in range(m):
+        if a == 0 or old_keep[a] != old_keep[a - 1] + 1 or new_keep[a] != new_keep[a - 1] + 1:
+            starts[r] = a
+            r += 1
+    starts[r] = m
+    return starts[:r + 1]
+
+
+@compiled_kernel(_runs)
 def _rebuild_kernel(P, old_keep, new_keep, R, new_conv, B, n_new):
     """The covariance after features leave or change kind: entries that only move
     (``P[old_keep][:, old_keep]`` to ``new_keep``), converted rows ``R`` (D, n_old) placed at
     ``new_conv`` (D,) against the moved columns and as their transposes, and the converted
     features' joint block ``B`` (D, D), symmetric. Returns the new (n_new, n_new) array."""
     out = np.empty((n_new, n_new))
+    runs = _runs(old_keep, new_keep)
     m = len(old_keep)
+    # Each row's moved entries as a few contiguous copies (a feature's removal or change of kind
+    # breaks a row into runs), which the compiler turns into block moves.
     for a in range(m):
         ia = old_keep[a]
         oa = new_keep[a]
-        for b in range(m):
-            out[oa, new_keep[b]] = P[ia, old_keep[b]]
+        for q in range(len(runs) - 1):
+            s0 = runs[q]
+            L = runs[q + 1] - s0
+            ob = new_keep[s0]
+            ib = old_keep[s0]
+            out[oa, ob:ob + L] = P[ia, ib:ib + L]
     for c in range(len(new_conv)):
         oc = new_conv[c]
         for b in range(m):
@@ -401,20 +423,7 @@ class State:
     def remove_features(self, ks) -> None:
         """Delete the features ``ks``: their entries of ``x`` and rows and columns of ``P``. Later
         features shift down."""
-        ks = sorted({self._check_k(k) for k in np.atleast_1d(ks)})
-        if not ks:
-            return
-        keep = np.ones(self.n, bool)
-        for k in ks:
-            keep[self.feature_slice(k)] = False
-        kept = np.setdiff1d(np.arange(self.n_features), ks)
-        idx = np.flatnonzero(keep)
-        self.x = self.x[keep]
-        self.P = _rebuild_kernel(self.P, idx, np.arange(len(idx)), np.zeros((0, self.n)), np.zeros(0, np.intp),
-                                 np.zeros((0, 0)), len(idx))
-        self.kinds = self.kinds[kept]
-        self.anchors = self.anchors[kept]
-        self.starts = feature_starts(self.cam_dim, self.kinds)
+        self.edit_features(remove=ks)
 
     def remove_feature(self, k: int) -> None:
         self.remove_features([k])
@@ -428,47 +437,69 @@ class State:
     def convert_features(self, ks, kind: int, ys_new, Js) -> None:
         """:meth:`convert_feature` for several features at once (one rebuild of ``P``):
         ``P <- T P T^T`` with ``T`` the identity except each converted feature's ``J``."""
-        ks = [self._check_k(k) for k in ks]
-        if not ks:
+        self.edit_features(convert=ks, kind=kind, ys_new=ys_new, Js=Js)
+
+    def edit_features(self, remove=(), convert=(), kind: int | None = None, ys_new=(), Js=()) -> None:
+        """Delete the features ``remove`` and convert the features ``convert`` to ``kind`` (as
+        :meth:`convert_features`) in one rebuild of ``P``; later features shift down. Raises
+        :class:`SlamNumericalError` (nothing changed) if a conversion is not finite."""
+        gone = sorted({self._check_k(k) for k in np.atleast_1d(np.asarray(remove, dtype=np.intp))})
+        ks = [self._check_k(k) for k in convert]
+        if set(ks) & set(gone):
+            raise ValueError(f"edit_features: features {sorted(set(ks) & set(gone))} both removed and converted")
+        if not gone and not ks:
             return
-        d_new = int(FEATURE_DIMS[kind])
         kinds = self.kinds.copy()
-        for k in ks:
-            kinds[k] = kind
+        conv = {}
+        if ks:
+            d_new = int(FEATURE_DIMS[kind])
+            kinds[ks] = kind
+            for k, y, J in zip(ks, ys_new, Js):
+                sl = self.feature_slice(k)
+                J = np.asarray(J, float)
+                y = np.asarray(y, float).reshape(-1)
+                if J.shape != (d_new, sl.stop - sl.start) or y.shape != (d_new,):
+                    raise ValueError(f"convert_features: J must be ({d_new}, {sl.stop - sl.start}) and y_new ({d_new},)")
+                if not (np.isfinite(y).all() and np.isfinite(J).all()):
+                    raise SlamNumericalError(f"convert_features: feature {k}'s conversion is not finite")
+                conv[k] = (sl, y, J)
+        kept = np.setdiff1d(np.arange(self.n_features), gone)
+        kinds = kinds[kept]
         starts_new = feature_starts(self.cam_dim, kinds)
         n_new = state_size(self.cam_dim, kinds)
-        conv = {}
-        for k, y, J in zip(ks, ys_new, Js):
-            sl = self.feature_slice(k)
-            J = np.asarray(J, float)
-            y = np.asarray(y, float).reshape(-1)
-            if J.shape != (d_new, sl.stop - sl.start) or y.shape != (d_new,):
-                raise ValueError(f"convert_features: J must be ({d_new}, {sl.stop - sl.start}) and y_new ({d_new},)")
-            if not (np.isfinite(y).all() and np.isfinite(J).all()):
-                raise SlamNumericalError(f"convert_features: feature {k}'s conversion is not finite")
-            conv[k] = (sl, slice(int(starts_new[k]), int(starts_new[k]) + d_new), y, J)
+        new_index = np.full(self.n_features, -1, np.intp)      # old feature index -> new
+        new_index[kept] = np.arange(len(kept))
         # The entries that only move: old index -> new index.
         moved = np.ones(self.n, bool)
-        for sl, _, _, _ in conv.values():
+        for k in gone:
+            moved[self.feature_slice(k)] = False
+        for sl, _, _ in conv.values():
             moved[sl] = False
+        new_slices = {k: slice(int(starts_new[new_index[k]]), int(starts_new[new_index[k]]) + len(y))
+                      for k, (_, y, _) in conv.items()}
         old_keep = np.flatnonzero(moved)
         new_keep = np.ones(n_new, bool)
-        for _, ns, _, _ in conv.values():
+        for ns in new_slices.values():
             new_keep[ns] = False
         new_keep = np.flatnonzero(new_keep)
-        # P <- T P T^T: the converted features' rows R = J P_y,: (D, n), their joint block
-        # R_k,sl_j J_j^T, and every other entry moved.
-        R = np.concatenate([J @ self.P[sl] for sl, _, _, J in conv.values()])
-        offs = np.cumsum([0] + [J.shape[0] for _, _, _, J in conv.values()])
-        B = np.concatenate([np.concatenate([R[o:o2, sl] @ J.T for sl, _, _, J in conv.values()], axis=1)
-                            for o, o2 in zip(offs[:-1], offs[1:])])
-        new_conv = np.concatenate([np.arange(ns.start, ns.stop) for _, ns, _, _ in conv.values()])
-        P = _rebuild_kernel(self.P, old_keep, new_keep, R, new_conv, 0.5 * (B + B.T), n_new)
+        if conv:
+            # P <- T P T^T: the converted features' rows R = J P_y,: (D, n), their joint block
+            # R_k,sl_j J_j^T, and every other entry moved.
+            R = np.concatenate([J @ self.P[sl] for sl, _, J in conv.values()])
+            offs = np.cumsum([0] + [J.shape[0] for _, _, J in conv.values()])
+            B = np.concatenate([np.concatenate([R[o:o2, sl] @ J.T for sl, _, J in conv.values()], axis=1)
+                                for o, o2 in zip(offs[:-1], offs[1:])])
+            B = 0.5 * (B + B.T)
+            new_conv = np.concatenate([np.arange(ns.start, ns.stop) for ns in new_slices.values()])
+        else:
+            R, B, new_conv = np.zeros((0, self.n)), np.zeros((0, 0)), np.zeros(0, np.intp)
+        P = _rebuild_kernel(self.P, old_keep, new_keep, R, new_conv, B, n_new)
         x = np.empty(n_new)
         x[new_keep] = self.x[old_keep]
-        for _, ns, y, _ in conv.values():
-            x[ns] = y
+        for k, (_, y, _) in conv.items():
+            x[new_slices[k]] = y
         self.x, self.P, self.kinds, self.starts = x, P, kinds, starts_new
+        self.anchors = self.anchors[kept]
 
     def guard(self, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True) -> None:
         """Run :func:`check_mean` and :func:`check_covariance` (symmetrising ``P``)."""

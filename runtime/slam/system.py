@@ -49,7 +49,7 @@ from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .corners import grey, min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
-from .filter import (FeatureNotMeasurable, FrameUpdate, add_inverse_depth_features, add_point_feature, convert_to_point,
+from .filter import (FeatureNotMeasurable, FrameUpdate, add_inverse_depth_features, add_point_feature, point_conversions,
                      innovation_covariances)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
@@ -335,9 +335,9 @@ class _Track:
             self._watch_target(g, st, frame)
         if s.features == "particles":
             self._refine_rays(g, st, frame)
+            self._delete(st, frame)
         else:
-            self._convert(st)
-        self._delete(st, frame)
+            self._delete(st, frame, self._conversions(st))
         # MonoSLAM adds features when too few are actually observed (matched), not predicted.
         if st.matched < s.visible_min:
             self._add(g, st, frame, st.matched)
@@ -692,28 +692,32 @@ class _Track:
         return int(found.sum()) >= max(s.loop_min_old, 0.5 * len(ks))
 
     # ------------------------------------------------------------------ map management
-    def _convert(self, st: FrameStats) -> None:
-        """Inverse-depth features whose depth is now well represented in Euclidean coordinates
-        become points (Civera et al.'s linearity index)."""
+    def _conversions(self, st: FrameStats) -> tuple[list, list, list]:
+        """The inverse-depth features whose depth is now well represented in Euclidean
+        coordinates (Civera et al.'s linearity index) and their points and Jacobians, for
+        :meth:`_delete` to apply: none if any conversion is not finite."""
         state = self.state
         _, L = self._points_and_linearity()
-        ks = np.flatnonzero(L < self.slam.settings.linearity_threshold)
-        if len(ks):
-            try:
-                convert_to_point(state, ks)
-                st.converted += len(ks)
-            except SlamNumericalError:
-                pass
-        st.initialising = int((state.kinds == INVERSE_DEPTH).sum())
+        ks = np.flatnonzero(L < self.slam.settings.linearity_threshold).tolist()
+        ys, Js = point_conversions(state, ks) if ks else ([], [])
+        if not all(np.isfinite(y).all() and np.isfinite(J).all() for y, J in zip(ys, Js)):
+            ks, ys, Js = [], [], []
+        st.converted += len(ks)
+        st.initialising = int((state.kinds == INVERSE_DEPTH).sum()) - len(ks)
+        return ks, ys, Js
 
-    def _delete(self, st: FrameStats, frame: int) -> None:
+    def _delete(self, st: FrameStats, frame: int, conversions: tuple[list, list, list] = ([], [], [])) -> None:
         """MonoSLAM's rule (inlier matches below ``delete_ratio`` of searches after
         ``delete_min_attempts``), a quicker one for new features that fail from the start, and
         the map's size cap: beyond ``max_features`` natural features go in :func:`cap_victims`'
-        order (out of view first, inverse-depth before points, seen longest ago first)."""
+        order (out of view first, inverse-depth before points, seen longest ago first). The
+        ``conversions`` (:meth:`_conversions`) are applied in the same rebuild of the state, and
+        the rules see the converted features as points."""
         s = self.slam.settings
         state = self.state
-        inv = np.flatnonzero(state.kinds == INVERSE_DEPTH)
+        kinds = state.kinds.copy()
+        kinds[conversions[0]] = POINT
+        inv = np.flatnonzero(kinds == INVERSE_DEPTH)
         behind = set(inv[state.x[state.starts[inv] + 5] < 0].tolist())   # rho < 0
         bad = []
         for k, f in enumerate(self.features):
@@ -736,14 +740,20 @@ class _Track:
                             np.intp)
             fs = [self.features[k] for k in keep]
             victims = cap_victims(excess, np.array([f.last_seen for f in fs]),
-                                  np.array([f.id in self.in_view_ids for f in fs], bool), state.kinds[keep] == POINT)
+                                  np.array([f.id in self.in_view_ids for f in fs], bool), kinds[keep] == POINT)
             bad += keep[victims].tolist()
-        if bad:
-            self._remove(sorted(set(bad)), st)
+        bad = sorted(set(bad))
+        ks, ys, Js = conversions
+        gone = set(bad)
+        keep_conv = [i for i, k in enumerate(ks) if k not in gone]   # a feature removed is not converted
+        if keep_conv or bad:
+            self._remove(bad, st, ([ks[i] for i in keep_conv], [ys[i] for i in keep_conv], [Js[i] for i in keep_conv]))
 
-    def _remove(self, ks: list[int], st: FrameStats) -> None:
-        """Features ``ks`` (ascending) out of the state and the map, counted in ``st``."""
-        self.state.remove_features(ks)
+    def _remove(self, ks: list[int], st: FrameStats, conversions: tuple[list, list, list] = ([], [], [])) -> None:
+        """Features ``ks`` (ascending) out of the state and the map, counted in ``st``, and the
+        ``conversions`` to points applied in the same rebuild."""
+        self.state.edit_features(remove=ks, convert=conversions[0], kind=POINT, ys_new=conversions[1],
+                                 Js=conversions[2])
         for k in reversed(ks):
             del self.features[k]
         st.deleted += len(ks)

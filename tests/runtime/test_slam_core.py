@@ -192,18 +192,19 @@ class DenseMaster:
 @pytest.mark.parametrize("cam_dim", BOTH)
 def test_offset_table_through_additions_removals_and_conversions(cam_dim):
     """Random map management on a mixed state: after every addition (either kind), removal (of
-    one or several features, anywhere) and conversion (State.convert_feature and
-    filter.convert_to_point), every feature's parameters and every covariance block are those
-    of the dense master record."""
+    one or several features, anywhere), conversion (State.convert_feature and
+    filter.convert_to_point) and removal with conversion in one rebuild (State.edit_features),
+    every feature's parameters and every covariance block are those of the dense master
+    record."""
     CAMERAS["pinhole"]
     rng = np.random.default_rng(6 + cam_dim)
     x_v = st.random_camera(rng, cam_dim=cam_dim)
     s = State.from_camera(x_v, st.camera_covariance(x_v[Q_SLICE], 0.01, 0.01, 0.1, 0.1, cam_dim))
     ref = DenseMaster(s)
-    ops = {"add": 0, "remove": 0, "convert": 0}
+    ops = {"add": 0, "remove": 0, "convert": 0, "edit": 0}
     mixed = 0
-    for step in range(60):
-        op = rng.choice(["add", "add", "remove", "convert"]) if s.n_features > 2 else "add"
+    for step in range(100):
+        op = rng.choice(["add", "add", "remove", "convert", "edit"]) if s.n_features > 2 else "add"
         if op == "add":
             kind = int(rng.integers(2))
             d = int(FEATURE_DIMS[kind])
@@ -220,6 +221,18 @@ def test_offset_table_through_additions_removals_and_conversions(cam_dim):
             ks = rng.choice(s.n_features, size=int(rng.integers(1, 3)), replace=False).tolist()
             s.remove_features(ks)
             ref.remove(ks)
+        elif op == "edit":
+            ids = np.flatnonzero(s.kinds == INVERSE_DEPTH)
+            if not len(ids) or s.n_features - len(ids) < 1:
+                continue
+            ks = rng.choice(ids, size=int(rng.integers(1, min(2, len(ids)) + 1)), replace=False).tolist()
+            others = np.setdiff1d(np.arange(s.n_features), ks)
+            gone = rng.choice(others, size=int(rng.integers(1, min(2, len(others)) + 1)), replace=False).tolist()
+            conv = [inverse_depth.to_point(s.feature(k), s.anchors[k]) for k in ks]
+            s.edit_features(remove=gone, convert=ks, kind=POINT, ys_new=[p for p, _ in conv], Js=[J for _, J in conv])
+            for k, (p, J) in zip(ks, conv):
+                ref.convert(k, POINT, p, J)
+            ref.remove(gone)
         else:
             ids = np.flatnonzero(s.kinds == INVERSE_DEPTH)
             if not len(ids):
