@@ -554,10 +554,12 @@ class _Track:
         """The target's four corners predicted in view and not matched for ``reacquire_after``
         frames: the pose has drifted beyond their search ellipses (a long look away, a fast turn
         the motion model missed), and the natural map, made from the drifting pose, agrees with
-        it. The printed quadrilateral is sought near its prediction; found, and fitting one pose
-        as at the start, the camera is put back at that pose (a re-localisation against the
-        target) and the features first seen since the target was last matched, placed from the
-        drifted poses, are removed."""
+        it. The printed quadrilateral is sought near its prediction; found, fitting one pose as
+        at the start, and with the natural features mapped while the target was matched found
+        where that pose projects them (:meth:`_old_map_agrees`, as the whole-image search asks),
+        the camera is put back at that pose (a re-localisation against the target) and the
+        features first seen since the target was last matched, placed from the drifted poses,
+        are removed."""
         slam = self.slam
         s, target = slam.settings, slam.refined_target
         if target is None or len(target.xyz) != 4 or self.last is None:
@@ -599,6 +601,14 @@ class _Track:
         # A drift turns the camera by little; a pose half a turn away is another quadrilateral
         # (or this one's corners in another order), as in the whole-image search.
         if rotation_angle(R_now, hyp.R_world_cam) > s.loop_max_turn_rad:
+            return
+        # A drifted pose has left the map the target anchored: the natural features mapped
+        # while the target was matched must match at the target's pose. A quadrilateral that is
+        # not the target (the target hidden, a shadow's edge) gives a pose they refute.
+        old = np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen],
+                       int)
+        ask_map = self.first_mapped is not None and self.first_mapped <= self.target_seen
+        if ask_map and not self._old_map_agrees(g, hyp.R_world_cam, hyp.r, old):
             return
         self._restart_at_target(hyp, st, frame)
 

@@ -3,8 +3,9 @@ whose corners' true pixels are known: a jerk most features' ellipses miss is sea
 larger impulses (system._Track._measure), and after a drift the known target is re-acquired
 (system._Track._watch_target, startup.find_quadrilateral): the quadrilateral is found from a
 prediction tens of pixels off, and a filter whose pose was moved 5 cm away is put back at the
-target's pose, where without it it stays. A pose so far off that the target is predicted off
-the image is put back by the whole-image search (system._Track._close_loop,
+target's pose, where without it it stays; a rectangle near the hidden target, at a pose the
+natural map refutes, does not move a camera the map holds. A pose so far off that the target
+is predicted off the image is put back by the whole-image search (system._Track._close_loop,
 startup.locate_target), which a dark rectangle elsewhere does not fool; so is a pose that drifted
 in the first frames, before any natural feature was mapped to confirm with, where a dark patch
 of texture in the target's place is not taken."""
@@ -268,3 +269,31 @@ def test_with_no_map_to_ask_a_dark_patch_of_texture_is_not_taken(candidates):
     print(f"\n{len(candidates)} candidates, nearest {100 * min(np.linalg.norm(c.r - r) for c in candidates):.2f} cm")
     assert candidates and min(np.linalg.norm(c.r - r) for c in candidates) < 0.01
     assert not any(s.reacquired for s in stats)
+
+
+def test_a_rectangle_near_the_hidden_target_does_not_move_a_camera_the_map_holds(monkeypatch):
+    """The camera tracks the target and the scene for 20 frames; then the target is hidden and
+    a rectangle of its size shows 3 cm away (a grazing view's thin quadrilateral, a shadow's
+    edge: twin sit-down seed 78 was moved 30 cm so). The local re-acquisition finds it, but the
+    natural features mapped while the target was matched do not match at the pose it gives, so
+    the camera stays where the map holds it; if the map's answer is ignored, it is moved."""
+    img, uv, (R, r) = view(0.6, 60.0, -70.0)
+    impostor = st.render_target_scene(CAM, R, r, st.rectangle(0.21, 0.15, centre=(0.03, 0.0)),
+                                      card_margin=CARD_MARGIN, background=st.texture(1))
+
+    def run():
+        slam = MonoSLAM(CAM, DEFAULT_CONFIG, replace(MapSettings(), loop_after=0, retry_noise_gain=1.0), imu=False)
+        slam.start(img, 0.0, Target(RECT, uv + 1.5))
+        for k in range(1, 21):
+            slam.process(img, k / 30)
+        stats = [slam.process(impostor, (21 + k) / 30) for k in range(10)]
+        return np.linalg.norm(slam.state.x[0:3] - r), stats
+
+    err, stats = run()
+    monkeypatch.setattr(system._Track, "_old_map_agrees", lambda *a, **k: True)
+    err_blind, stats_blind = run()
+    print(f"\nasking the map: re-acquired {any(s.reacquired for s in stats)}, {100 * err:.2f} cm off; "
+          f"not asking: re-acquired {any(s.reacquired for s in stats_blind)}, {100 * err_blind:.2f} cm off")
+    assert not any(s.reacquired for s in stats) and err < 0.003
+    assert any(s.reacquired for s in stats_blind) and err_blind > 0.01
+
