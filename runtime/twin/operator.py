@@ -9,6 +9,7 @@ as target.toml, and the closed loop can start SLAM from the same kind of input.
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 
 from kinematics.camera import project
@@ -36,6 +37,28 @@ def target_in_first_frame(twin: Twin) -> Target:
     return Target(xyz=xyz, uv=uv)
 
 
+class TargetHidden(ValueError):
+    """The target's corners cannot all be seen in the first image, so no one could click them."""
+
+
+def hidden_points(twin: Twin, eye: np.ndarray, xyz: np.ndarray, clearance: float = 0.02,
+                  tol: float = 0.01) -> np.ndarray:
+    """(n,) whether each world point ``xyz`` (n, 3), m, is hidden from ``eye`` (3,) by the
+    twin's geometry as it stands: MuJoCo's ray from ``clearance`` m in front of the eye (past
+    the camera's own housing) meets a geom more than ``tol`` m before the point (a point on a
+    surface is hit at its own distance, within the sheet's thickness over the sine of a grazing
+    view)."""
+    out = np.zeros(len(xyz), bool)
+    geom = np.zeros(1, np.int32)
+    for i, p in enumerate(np.asarray(xyz, float)):
+        d = p - eye
+        dist = float(np.linalg.norm(d))
+        u = d / dist
+        hit = mujoco.mj_ray(twin.model, twin.data, eye + clearance * u, u, None, 1, -1, geom)
+        out[i] = hit >= 0 and clearance + hit < dist - tol
+    return out
+
+
 def click(uv: np.ndarray, error_px: float, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
     """(n, 2) clicked pixels for true pixels ``uv`` (n, 2): each moved by 0.8..1.2 x ``error_px``
     in a random direction, rounded to the nearest half pixel, kept inside the image. An error of
@@ -54,7 +77,12 @@ def click(uv: np.ndarray, error_px: float, rng: np.random.Generator, width: int,
 def clicked_target(twin: Twin, error_px: float = CLICK_ERROR_PX, rng: np.random.Generator | None = None) -> Target:
     """target.toml as a person makes it for the twin's current image: the known corners and
     where the operator clicked them (the true projection ``error_px`` off, see :func:`click`).
+    Raises :class:`TargetHidden` if a corner is hidden behind the scene (:func:`hidden_points`).
     ``rng`` defaults to the run's own click stream (reproducible per seed)."""
     exact = target_in_first_frame(twin)
+    hidden = np.flatnonzero(hidden_points(twin, twin.ground_truth.T_world_cam[:3, 3], exact.xyz))
+    if len(hidden):
+        raise TargetHidden(f"the target's corners {hidden.tolist()} are hidden behind the scene at the start of "
+                           f"{twin.scenario.name} (no one could click them); use another --scene-seed or --seed")
     rng = np.random.default_rng([twin.seed, CLICK_STREAM]) if rng is None else rng
     return Target(xyz=exact.xyz, uv=click(exact.uv, error_px, rng, twin.camera.width, twin.camera.height))

@@ -1,7 +1,8 @@
 """Recording a scenario into a sequence folder in the shared format (TUM layout + TOML files).
 
 What a recording holds, beside the sequence itself (rgb/, rgb.txt, imu.txt, joints.txt,
-camera.toml, target.toml with the operator's clicked pixels):
+camera.toml, target.toml with the operator's clicked pixels, none when a corner is hidden at
+the start):
 
 - ``head.toml``: the head it was made with (kinematics.geometry's writer);
 - ``twin.toml``: how it was made (scenario, run seed, scene seed, sensor models, click error);
@@ -13,6 +14,7 @@ camera.toml, target.toml with the operator's clicked pixels):
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Iterator
 
@@ -24,7 +26,7 @@ from kinematics import ServoFilter
 from kinematics.geometry import save_head
 
 from ..sequence import SequenceWriter, save_target
-from .operator import CLICK_ERROR_PX, clicked_target, target_in_first_frame
+from .operator import CLICK_ERROR_PX, TargetHidden, clicked_target, target_in_first_frame
 from .twin import Observation, Twin
 
 __all__ = ["SCRIPT_SPEED_RAD_S", "record", "scripted_frames", "target_in_first_frame"]
@@ -62,8 +64,14 @@ def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, 
     obs = twin.reset(scenario, seed=seed, seconds=seconds, scene_seed=scene_seed)
     n_frames = int(round(twin.seconds * twin.frame_rate))
     exact = target_in_first_frame(twin)
+    try:
+        clicked = clicked_target(twin, click_error_px)
+    except TargetHidden as e:
+        # Recorded all the same (for a saved map's re-location, the 2D trackers), without clicks.
+        clicked = None
+        print(f"wvr sim record: no target.toml: {e}", file=sys.stderr)
     times = []
-    with SequenceWriter(out, twin.camera, target=clicked_target(twin, click_error_px)) as w:
+    with SequenceWriter(out, twin.camera, target=clicked) as w:
         save_head(twin.head, out / "head.toml")
         save_target(exact, out / "target_truth.toml")
         (out / "twin.toml").write_text(tomli_w.dumps(_recording_table(twin, click_error_px)))
