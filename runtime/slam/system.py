@@ -605,10 +605,8 @@ class _Track:
         # A drifted pose has left the map the target anchored: the natural features mapped
         # while the target was matched must match at the target's pose. A quadrilateral that is
         # not the target (the target hidden, a shadow's edge) gives a pose they refute.
-        old = np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen],
-                       int)
-        ask_map = self.first_mapped is not None and self.first_mapped <= self.target_seen
-        if ask_map and not self._old_map_agrees(g, hyp.R_world_cam, hyp.r, old):
+        old = self._mapped_before_loss()
+        if old is not None and not self._old_map_agrees(g, hyp.R_world_cam, hyp.r, old):
             return
         self._restart_at_target(hyp, st, frame)
 
@@ -639,12 +637,12 @@ class _Track:
             return False
         pred = predict(self.state, known, cam)
         S = innovation_covariances(self.state, pred, slam.cfg.sigma_pixel**2, np.ones(4)) if pred.valid.all() else None
-        old = np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen], int)
         # Lost before any natural feature was mapped (a drift from the first frames), the map
         # holds only what the drift placed and there is nothing to ask: the most print-like
         # quadrilateral is taken, as the start-up takes it. A map that had such features asks
         # them even when the cap has since removed them (a lone dark quadrilateral is no proof).
-        ask_map = self.first_mapped is not None and self.first_mapped <= self.target_seen
+        old = self._mapped_before_loss()
+        ask_map = old is not None
         if not ask_map:
             # and only if it looks as printed as the target did at the start (not a picture frame)
             found = [f for f in found[:1] if print_contrast(g, f.uv) >= 0.5 * slam.target_contrast]
@@ -679,6 +677,16 @@ class _Track:
             self._remove(drifted, st)
         st.reacquired = True
         self.target_seen, self.target_missed = frame, 0
+
+    def _mapped_before_loss(self) -> np.ndarray | None:
+        """The natural features mapped while the target was last matched (map indices), which a
+        pose put back at the target must match; None when no natural feature had been mapped by
+        then (a drift from the first frames: no map to ask). Empty when the cap has since removed
+        them all: a lone quadrilateral is then no proof."""
+        if self.first_mapped is None or self.first_mapped > self.target_seen:
+            return None
+        return np.array([k for k, f in enumerate(self.features) if not f.known and f.first_frame <= self.target_seen],
+                        int)
 
     def _old_map_agrees(self, g: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray, ks: np.ndarray) -> bool:
         """Whether features ``ks`` match in ``g`` where the pose (R_world_cam, r) projects them: at least
