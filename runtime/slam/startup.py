@@ -200,14 +200,15 @@ def _fit_lines(xy: np.ndarray, keep: np.ndarray) -> np.ndarray | None:
     return np.column_stack([nrm, -(nrm * c).sum(axis=1)])
 
 
-def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray,
+                    max_shift_px: float = EDGE_MAX_SHIFT_PX) -> np.ndarray | None:
     """The corners of a printed quadrilateral (uv (4, 2) in order round it, from a corner fit)
     as the intersections of its sides, each fitted to the sub-pixel edge points along it: the
     whole edge's evidence, not a corner window's (cornerSubPix leaves 0.1-0.4 px on the twin's
     blurred, noisy frames). Sides are straight in undistorted coordinates: edge points are
     undistorted, the lines fitted and intersected there, the corners projected back. None when
     the points are not a convex quadrilateral, a side's edge is not found, or a corner would
-    move more than EDGE_MAX_SHIFT_PX (the corner fit is then kept)."""
+    move more than ``max_shift_px`` (the corner fit is then kept)."""
     uv = np.asarray(uv, float)
     if uv.shape != (4, 2):
         return None
@@ -236,7 +237,7 @@ def refine_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray) -> 
     if (np.abs(p[:, 2]) < 1e-12).any():
         return None
     out = project(cam, np.column_stack([p[:, :2] / p[:, 2:], np.ones(4)]))
-    if not np.isfinite(out).all() or np.linalg.norm(out - uv, axis=1).max() > EDGE_MAX_SHIFT_PX:
+    if not np.isfinite(out).all() or np.linalg.norm(out - uv, axis=1).max() > max_shift_px:
         return None
     return out
 
@@ -485,6 +486,22 @@ def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float
     return 0.5 * (cov + cov.T) + 1e-3 * linear
 
 
+def start_corners_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray, search_px: float
+                           ) -> np.ndarray | None:
+    """A printed quadrilateral's corners at the start from its sides (:func:`refine_by_edges`),
+    which locate it better than corner fits: a corner fit of a small, obliquely seen target's
+    acute corner sits up to a few pixels inside it. The sides may move a
+    corner as far as the clicks are trusted (``search_px``) when they would move one more than
+    EDGE_MAX_SHIFT_PX; they are then fitted again from the corners they gave, and that second
+    fit, sampled along the sides themselves, must agree within EDGE_MAX_SHIFT_PX, or the corner
+    fits are kept (None)."""
+    edged = refine_by_edges(cam, grey, uv)
+    if edged is not None:
+        return edged
+    edged = refine_by_edges(cam, grey, uv, max_shift_px=search_px)
+    return None if edged is None else refine_by_edges(cam, grey, edged)
+
+
 def start_hypotheses(cam: CameraIntrinsics, grey: np.ndarray, target: Target, search_px: float, sigma_px: float,
                      max_rms_px: float, ambiguity_ratio: float) -> tuple[RefinedTarget, list[PoseHypothesis]]:
     """Refine the clicks, fit the poses and check them: the refined target and the pose
@@ -493,7 +510,7 @@ def start_hypotheses(cam: CameraIntrinsics, grey: np.ndarray, target: Target, se
     ref = refine_clicks(grey, target, search_px) if search_px > 0 else \
         RefinedTarget(np.asarray(target.xyz, float), np.asarray(target.uv, float), np.zeros(len(target.xyz)))
     if search_px > 0 and len(ref.uv) == 4:
-        edged = refine_by_edges(cam, grey, ref.uv)     # a printed quadrilateral: its sides locate it better
+        edged = start_corners_by_edges(cam, grey, ref.uv, search_px)
         if edged is not None:
             ref = RefinedTarget(ref.xyz, edged, np.linalg.norm(edged - np.asarray(target.uv, float), axis=1))
     hyps = pose_hypotheses(cam, ref.xyz, ref.uv, sigma_px, ambiguity_ratio)

@@ -267,6 +267,26 @@ def test_the_sides_place_the_corners_better_than_the_corner_fit(view):
     assert errs_e.max() < 0.1 and np.median(errs_e) < np.median(errs_c)
 
 
+@pytest.mark.parametrize("view", [(1.6, 20.0, -20.0), (2.2, 22.0, -35.0)])
+def test_a_small_grazing_target_starts_from_its_sides_where_the_corner_fit_is_pixels_off(view):
+    """A far target seen at a grazing angle (25 x 66 px, as the walker's first view of the bench):
+    corner fits of its acute corners sit 1.5-3 px inside them, beyond the sides' per-frame
+    shift limit; the start takes the sides' corners all the same (within 0.2 px of the truth),
+    where keeping the corner fits started 2-14 cm off or refused the start."""
+    R, r = st.viewpoint(*view)
+    img = st.render_target_scene(CAM, R, r, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
+    uv = st.pixels(CAM, R, r, RECT)
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        target = Target(RECT, clicks(uv, rng))
+        corner_fit = refine_clicks(img, target, S.click_search_px)
+        assert np.linalg.norm(corner_fit.uv - uv, axis=1).max() > 1.5       # the case this is about
+        ref, hyps = start_hypotheses(CAM, img, target, S.click_search_px, S.start_pixel_sigma, S.start_max_rms_px,
+                                     S.ambiguity_ratio)
+        assert np.linalg.norm(ref.uv - uv, axis=1).max() < 0.2
+        assert hyps[0].rms_px < 0.2
+
+
 @pytest.mark.parametrize("lens", ["brown", "fisheye"])
 def test_the_sides_follow_a_distorted_lens(lens):
     """Through a strongly distorted lens the sides are curves; fitted as lines after undistortion
