@@ -61,7 +61,8 @@ from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
-                      pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
+                      pose_hypotheses, print_contrast, refine_by_edges, start_corners_by_edges,
+                      start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
                     TD_INDEX, V_SLICE, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -472,7 +473,7 @@ class _Track:
             m = len(pred.ks)
         st.predicted = visible
         if s.known_edges:
-            self._known_by_edges(g, feats, z)
+            self._known_by_edges(g, feats, z, pred.uv)
         for f in feats:
             f.attempts += 1
         st.searched = m
@@ -534,19 +535,26 @@ class _Track:
         """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature)."""
         return np.array([self.features[k].reliability for k in ks], float)
 
-    def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray) -> None:
-        """A printed quadrilateral target found whole is located by its fitted sides (as at the
-        start), not by its corners' templates: the template, cut once at the start and warped by
-        the estimated pose, carries that pose's error into every match."""
+    def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray, uv_pred: np.ndarray) -> None:
+        """A printed quadrilateral target whose corners' templates found at least three of them
+        is located by its fitted sides (as at the start), not by the templates: a template, cut
+        once at the start and warped by the estimated pose, carries that pose's error into every
+        match, and one cut from a small far view matches a near one a few pixels off or not at
+        all. A corner not found starts from its prediction ``uv_pred`` (m, 2); the sides may then
+        move the corners as far as at the start (startup.start_corners_by_edges), or they are
+        left to the templates."""
         rows = [j for j, f in enumerate(feats) if f.known]
-        target = self.slam.refined_target
+        slam = self.slam
+        target = slam.refined_target
         if len(rows) != 4 or target is None or len(target.xyz) != 4:
             return
         rows.sort(key=lambda j: feats[j].id)
         quad = z[rows]
-        if not np.isfinite(quad).all():
+        found = np.isfinite(quad).all(axis=1)
+        if found.sum() < 3:
             return
-        edged = refine_by_edges(self.slam.cam, g, quad)
+        quad = np.where(found[:, None], quad, uv_pred[rows])
+        edged = start_corners_by_edges(slam.cam, g, quad, slam.settings.click_search_px)
         if edged is not None:
             z[rows] = edged
 
