@@ -486,15 +486,15 @@ def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float
     return 0.5 * (cov + cov.T) + 1e-3 * linear
 
 
-def start_corners_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray, search_px: float
-                           ) -> np.ndarray | None:
-    """A printed quadrilateral's corners at the start from its sides (:func:`refine_by_edges`),
-    which locate it better than corner fits: a corner fit of a small, obliquely seen target's
-    acute corner sits up to a few pixels inside it. The sides may move a
-    corner as far as the clicks are trusted (``search_px``) when they would move one more than
-    EDGE_MAX_SHIFT_PX; they are then fitted again from the corners they gave, and that second
-    fit, sampled along the sides themselves, must agree within EDGE_MAX_SHIFT_PX, or the corner
-    fits are kept (None)."""
+def corners_by_edges(cam: CameraIntrinsics, grey: np.ndarray, uv: np.ndarray, search_px: float
+                     ) -> np.ndarray | None:
+    """A printed quadrilateral's corners from its sides (:func:`refine_by_edges`) when they may be
+    pixels away from ``uv`` (4, 2): the corner fit of a small, obliquely seen target's acute
+    corner sits up to a few pixels inside it, and so does a template's match cut from a far view.
+    Where the 1.5 px fit fails, the sides may move a corner up to ``search_px``; they are then
+    fitted again from the corners they gave, and that second fit, sampled along the sides
+    themselves, must agree within EDGE_MAX_SHIFT_PX. None: the sides were not found (the caller
+    keeps ``uv``)."""
     edged = refine_by_edges(cam, grey, uv)
     if edged is not None:
         return edged
@@ -510,7 +510,7 @@ def start_hypotheses(cam: CameraIntrinsics, grey: np.ndarray, target: Target, se
     ref = refine_clicks(grey, target, search_px) if search_px > 0 else \
         RefinedTarget(np.asarray(target.xyz, float), np.asarray(target.uv, float), np.zeros(len(target.xyz)))
     if search_px > 0 and len(ref.uv) == 4:
-        edged = start_corners_by_edges(cam, grey, ref.uv, search_px)
+        edged = corners_by_edges(cam, grey, ref.uv, search_px)     # a printed quadrilateral's sides
         if edged is not None:
             ref = RefinedTarget(ref.xyz, edged, np.linalg.norm(edged - np.asarray(target.uv, float), axis=1))
     hyps = pose_hypotheses(cam, ref.xyz, ref.uv, sigma_px, ambiguity_ratio)

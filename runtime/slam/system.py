@@ -60,9 +60,8 @@ from .ransac import one_point_ransac
 from .relocalise import relocalise
 from .matching import match_features
 from .search import extract_template, search
-from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,
-                      pose_hypotheses, print_contrast, refine_by_edges, start_corners_by_edges,
-                      start_hypotheses)
+from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, corners_by_edges, find_quadrilateral,
+                      locate_target, pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
 from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
                     TD_INDEX, V_SLICE, W_SLICE, SlamNumericalError, State, check_covariance)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
@@ -541,7 +540,7 @@ class _Track:
         once at the start and warped by the estimated pose, carries that pose's error into every
         match, and one cut from a small far view matches a near one a few pixels off or not at
         all. A corner not found starts from its prediction ``uv_pred`` (m, 2); the sides may then
-        move the corners as far as at the start (startup.start_corners_by_edges), or they are
+        move the corners as far as at the start (startup.corners_by_edges), or they are
         left to the templates."""
         rows = [j for j, f in enumerate(feats) if f.known]
         slam = self.slam
@@ -554,7 +553,7 @@ class _Track:
         if found.sum() < 3:
             return
         quad = np.where(found[:, None], quad, uv_pred[rows])
-        edged = start_corners_by_edges(slam.cam, g, quad, slam.settings.click_search_px)
+        edged = corners_by_edges(slam.cam, g, quad, slam.settings.click_search_px)
         if edged is not None:
             z[rows] = edged
 
