@@ -205,6 +205,9 @@ class MapSettings:
     plane_radius_m: float = 0.25
     plane_tol_m: float = 0.01
     normals_every: int = 10
+    normals_per_frame: int = 4           # matched features whose normal is fitted to their looks, a frame, at most
+    normal_step_deg: float = 10.0        # each time its view has turned this much further from the first
+    normal_margin: float = 0.02          # and kept when it scores this much better than the current one
     # -- IMU --
     use_imu: bool = True
     imu_biases: bool = True              # bias states in the filter (the camera block of 19)

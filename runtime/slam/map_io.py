@@ -4,7 +4,7 @@ within that environment at a later time").
 A map file is a NumPy ``.npz`` archive: a JSON header (format name, version, the camera model it
 was built with, the template size) and the arrays of the map: the features' state entries and
 their full covariance, their kinds and anchors, and each feature's appearance (template, first
-view's patch, pixel, camera centre and orientation, plane normal) and record (id, first frame,
+view's patch, pixel, camera centre and orientation, plane normal and how it was found) and record (id, first frame,
 target point, searches and inliers). It is written to a temporary name and moved into place, so
 a killed run never leaves half a map.
 """
@@ -103,6 +103,7 @@ def save_map(path: str | Path, slam) -> Path:
         R0=np.array([f.R0 if f.R0 is not None else np.eye(3) for f in feats]).reshape(-1, 3, 3),
         normal=np.array([f.normal if f.normal is not None else nan3 for f in feats]).reshape(-1, 3),
         normal_from_map=np.array([f.normal_from_map for f in feats], bool),
+        normal_view_deg=np.array([f.normal_view_deg for f in feats], float),
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -150,6 +151,10 @@ def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedM
         if a["y"].shape != (m,) or a["P"].shape != (m, m) or a["anchors"].shape != (n, 3, 3) \
                 or a["templates"].shape[0] != n or header.get("features") != n:
             raise ValueError("shapes")
+        # Maps written before the normals were fitted to the features' looks have none of these.
+        view_deg = a["normal_view_deg"] if "normal_view_deg" in a else np.zeros(n)
+        if view_deg.shape != (n,):
+            raise ValueError("normal_view_deg")
         feats = []
         for i in range(n):
             nrm = a["normal"][i]
@@ -158,7 +163,8 @@ def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedM
                 r0=a["r0"][i].copy(), known=bool(a["known"][i]), attempts=int(a["attempts"][i]),
                 successes=int(a["successes"][i]), patch=a["patches"][i].copy() if a["has_patch"][i] else None,
                 uv0=a["uv0"][i].copy() if np.isfinite(a["uv0"][i]).all() else None, R0=a["R0"][i].copy(),
-                normal=nrm.copy() if np.isfinite(nrm).all() else None, normal_from_map=bool(a["normal_from_map"][i])))
+                normal=nrm.copy() if np.isfinite(nrm).all() else None, normal_from_map=bool(a["normal_from_map"][i]),
+                normal_view_deg=float(view_deg[i])))
         T = a["T_world_cam"]
         if not np.isfinite(T).all():
             T = np.eye(4)

@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from kinematics.camera import CameraIntrinsics, in_image, unproject
+from kinematics.camera import CameraIntrinsics, in_image, lens_kernel_args, unproject
 from kinematics.camera import project as project_points
 from kinematics.transforms import rotation_angle
 
@@ -58,7 +58,7 @@ from .motion import (adapted_sigma_a, adapted_sigma_alpha, f_and_dfdx, f_and_dfd
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .ransac import one_point_ransac
 from .relocalise import relocalise
-from .matching import match_features
+from .matching import fit_normal_kernel, match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, corners_by_edges, find_quadrilateral,
                       locate_target, pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
@@ -333,6 +333,8 @@ class _Track:
             self.localised = True
         elif s.reacquire_after > 0 and not closed:
             self._watch_target(g, st, frame)
+        if s.normals_per_frame > 0 and s.warp != "known" and not lost and not closed:
+            self._normals_from_views(g)         # the matches _measure made in this frame
         if s.features == "particles":
             self._refine_rays(g, st, frame)
             self._delete(st, frame)
@@ -837,9 +839,53 @@ class _Track:
                 self.state.remove_features(added)
         st.initialising = len(self.rays) if s.features == "particles" else int((self.state.kinds == INVERSE_DEPTH).sum())
 
+    def _normals_from_views(self, g: np.ndarray) -> None:
+        """The plane normals of features matched this frame whose view has turned far enough
+        from their first, from their appearance (after Molton, Davison and Reid, "Locally planar
+        patch features for real-time structure from motion", BMVC 2004): of candidate normals,
+        the one whose warp of the first-view patch best matches the image at the match. A
+        fronto-parallel guess warps a floor or wall seen obliquely wrongly, and its template
+        stops matching a few tens of degrees on."""
+        slam = self.slam
+        s, cam = slam.settings, slam.cam
+        sv = self.last
+        if sv is None or not len(sv.ks):
+            return
+        feats = self.features
+        cand = [(j, k) for j, k in zip(np.flatnonzero(sv.used).tolist(), sv.ks[sv.used].tolist())
+                if k < len(feats) and feats[k].id == sv.ids[j] and not feats[k].known
+                and feats[k].patch is not None and feats[k].normal is not None]
+        if not cand:
+            return
+        js, ks = np.array(cand).T
+        r = self.state.r
+        Y = self.world_points()
+        a = Y[ks] - r
+        b = Y[ks] - np.array([feats[k].r0 for k in ks])
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        gain = angle - np.array([feats[k].normal_view_deg for k in ks])
+        due = [i for i in np.argsort(-gain, kind="stable")[:s.normals_per_frame] if gain[i] >= s.normal_step_deg]
+        if not due:
+            return
+        R = quat_to_rotation(self.state.x_v[3:7])
+        model, lens = lens_kernel_args(cam)
+        g32 = np.ascontiguousarray(g, np.float32)
+        tilts = np.array([0.0, 20.0, 40.0, 60.0])
+        for i in due:
+            f = feats[ks[i]]
+            n, score, current = fit_normal_kernel(
+                g32, f.patch.astype(np.float32, copy=False), slam.template_px, f.first_view_rays(cam),
+                np.asarray(f.r0, float), np.ascontiguousarray(Y[ks[i]], float), np.asarray(r, float), R, model, lens,
+                np.asarray(sv.z[js[i]], float), np.asarray(f.normal, float), tilts, 8, 10.0)
+            f.normal_view_deg = float(angle[i])
+            if score < current - s.normal_margin:
+                f.normal = n / np.linalg.norm(n)
+
     def _normals_from_map(self) -> None:
-        """Give each natural point feature the normal of the plane through it and its map
-        neighbours, facing its first view."""
+        """Give each natural point feature whose normal was not fitted to its looks
+        (_normals_from_views) the normal of the plane through it and its map neighbours, facing
+        its first view."""
         points = np.flatnonzero(self.state.kinds == POINT)
         if len(points) < 4:
             return
@@ -847,7 +893,7 @@ class _Track:
         neighbours = cKDTree(Y).query_ball_point(Y, self.slam.settings.plane_radius_m)
         for j, k in enumerate(points):
             f = self.features[k]
-            if not f.known and len(neighbours[j]) >= 4:
+            if not f.known and len(neighbours[j]) >= 4 and f.normal_view_deg == 0:
                 n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf, self.slam.settings.plane_tol_m)
                 if n is not None:
                     f.normal, f.normal_from_map = (n if n @ (f.r0 - Y[j]) > 0 else -n), True
@@ -1002,7 +1048,8 @@ class MonoSLAM:
     def warped(self, f: MapFeature) -> bool:
         """Whether the feature's template is predicted through its plane (MapSettings.warp)."""
         w = self.settings.warp
-        return w == "all" or (w == "known" and f.known) or (w == "neighbours" and (f.known or f.normal_from_map))
+        return w == "all" or (w == "known" and f.known) or (
+            w == "neighbours" and (f.known or f.normal_from_map or f.normal_view_deg > 0))
 
     def T_world_cam(self) -> np.ndarray:
         """(4, 4) the current camera pose (NaN before the camera is localised in the map)."""

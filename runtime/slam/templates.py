@@ -27,7 +27,9 @@ class MapFeature:
     point. attempts, successes : searches and inlier matches (deletion). patch : (p, p) the
     first view's larger patch (warping), uv0 : its centre pixel, R0 : (3, 3) the first view's
     camera-to-world rotation, normal : (3,) the patch's plane normal (world), normal_from_map :
-    fitted to map neighbours. rays0 : (4, 3) cached world rays of the patch's corners.
+    fitted to map neighbours, normal_view_deg : the view's angle from the first, degrees, when
+    the normal was last fitted to the feature's looks (0: never). rays0 : (4, 3) cached world
+    rays of the patch's corners.
     drift : (2,) px, the exponential mean of its residuals after each update, started by its
     first (:meth:`note_residual`); None before any.
     """
@@ -44,6 +46,7 @@ class MapFeature:
     R0: np.ndarray | None = None
     normal: np.ndarray | None = None
     normal_from_map: bool = False
+    normal_view_deg: float = 0.0
     rays0: np.ndarray | None = None
     last_seen: int = -1
     nis: list = field(default_factory=list)   # normalised innovations of its latest inlier matches

@@ -31,7 +31,7 @@ CAM = su.CAM
 #: What a saved map keeps of each feature (the rest is the session's own: cached rays, the last
 #: frame it was seen in, its latest innovations).
 SAVED_FIELDS = ("id", "template", "first_frame", "r0", "known", "attempts", "successes", "patch", "uv0", "R0",
-                "normal", "normal_from_map")
+                "normal", "normal_from_map", "normal_view_deg")
 
 
 @pytest.fixture(scope="module")
@@ -60,6 +60,23 @@ def assert_feature_equal(a: MapFeature, b: MapFeature) -> None:
             np.testing.assert_array_equal(va, vb, err_msg=name)
         else:
             assert va == vb, name
+
+
+def test_the_angle_a_normal_was_fitted_at_round_trips_and_an_older_map_has_none(slam, tmp_path):
+    before = [f.normal_view_deg for f in slam.features]
+    try:
+        for i, f in enumerate(slam.features):
+            f.normal_view_deg = 10.0 + 1.5 * i
+        path = save_map(tmp_path / "m", slam)
+        assert [f.normal_view_deg for f in load_map(path, CAM).features] == [10.0 + 1.5 * i for i in range(len(before))]
+        # A map written before the fitted normals: the same file less that array.
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files if k != "normal_view_deg"}
+        np.savez_compressed(tmp_path / "old.npz", **arrays)
+        assert all(f.normal_view_deg == 0.0 for f in load_map(tmp_path / "old.npz", CAM).features)
+    finally:
+        for f, v in zip(slam.features, before):
+            f.normal_view_deg = v
 
 
 def test_save_then_load_round_trips_every_array_and_record(slam, tmp_path):
