@@ -17,6 +17,11 @@ the prediction): a parabola through the correlation peak errs by a tenth of a pi
 the sub-pixel phase, and a template predicted with a slightly wrong plane or pose, if only
 translated, is pulled off its feature by a few tenths, a bias that grows as the view leaves the
 first one (the twin's tracks measured against their true projections; benchmarks/NOTES.md).
+
+The plane a natural feature's warp uses starts as a guess (facing its first view); as the view
+turns, the normal is fitted to the feature's looks (fit_normal_kernel: the candidate normal
+whose warp of the first-view patch best matches the image at the feature's match, after Molton,
+Davison and Reid, BMVC 2004).
 """
 
 from __future__ import annotations
@@ -487,7 +492,7 @@ def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, nor
             continue
         cu, cv = corners[4, 0], corners[4, 1]
         if abs(cu - z[0]) > 2.0 or abs(cv - z[1]) > 2.0:
-            continue
+            continue                      # the first view's centre lands off the match on this plane
         # The warped patch moved so that its centre lands on the match, sampled on the grid of
         # the image window about the match's pixel: only the plane's shape is compared.
         for q in range(4):
