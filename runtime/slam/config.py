@@ -149,6 +149,7 @@ class MapSettings:
     ransac_max_hypotheses: int = 60
     ransac_confidence: float = 0.99
     rescue_chi2: float = 4.61            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 90%)
+    known_vote: float = 5.0              # a target corner placed by its sides: its vote for a hypothesis (a natural feature's: <= 1)
     # -- deletion, visibility, matching --
     delete_min_attempts: int = 10
     delete_ratio: float = 0.5
@@ -230,6 +231,8 @@ class MapSettings:
         if self.warp not in WARP_MODES:
             raise ValueError(f"MapSettings.warp = {self.warp!r}: give one of {', '.join(WARP_MODES)}")
         _check_numbers(self)
+        if not self.known_vote > 0:
+            raise ValueError(f"MapSettings.known_vote = {self.known_vote}: a target corner's vote must be positive")
         if self.measure_max < 3:
             raise ValueError(f"MapSettings.measure_max = {self.measure_max}: measure at least 3 features a frame")
         if self.visible_min > self.measure_max:

@@ -473,8 +473,7 @@ class _Track:
                 self.state.P[:cd, :cd] = P_cam
             m = len(pred.ks)
         st.predicted = visible
-        if s.known_edges:
-            self._known_by_edges(g, feats, z, pred.uv)
+        edged = self._known_by_edges(g, feats, z, pred.uv) if s.known_edges else np.zeros(m, bool)
         for f in feats:
             f.attempts += 1
         st.searched = m
@@ -490,7 +489,7 @@ class _Track:
         rng = np.random.default_rng((slam.seed, frame))
         res = one_point_ransac(self.state, sub.ks, z[fi], cam, slam.cfg.sigma_pixel**2, sub, S[fi],
                                s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
-                               r_scale[fi], votes=self._votes(sub.ks), accept=accept)
+                               r_scale[fi], votes=self._votes(sub.ks, edged[fi]), accept=accept)
         if res.refused:
             for f in feats:             # the search counted as not made (the votes read it first)
                 f.attempts -= 1
@@ -532,32 +531,41 @@ class _Track:
         extra = G @ noise_covariance(dt, self.motion_cfg, math.sqrt(gain * gain - 1.0)) @ G.T
         self.state.P[:cd, :cd] += 0.5 * (extra + extra.T)
 
-    def _votes(self, ks: np.ndarray) -> np.ndarray:
-        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature)."""
-        return np.array([self.features[k].reliability for k in ks], float)
+    def _votes(self, ks: np.ndarray, edged: np.ndarray | None = None) -> np.ndarray:
+        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature, at
+        most 1); a target corner placed by the target's fitted sides in this frame (``edged``
+        (m,)) votes ``known_vote``: it is within a few tenths of a pixel, and a map that drifted
+        with the camera agrees with itself and would outvote a small far target's corners."""
+        votes = np.array([self.features[k].reliability for k in ks], float)
+        if edged is not None:
+            votes[np.asarray(edged, bool)] = self.slam.settings.known_vote
+        return votes
 
-    def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray, uv_pred: np.ndarray) -> None:
+    def _known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray, uv_pred: np.ndarray) -> np.ndarray:
         """A printed quadrilateral target whose corners' templates found at least three of them
         is located by its fitted sides (as at the start), not by the templates: a template, cut
         once at the start and warped by the estimated pose, carries that pose's error into every
         match, and one cut from a small far view matches a near one a few pixels off or not at
         all. A corner not found starts from its prediction ``uv_pred`` (m, 2); the sides may then
         move the corners as far as at the start (startup.corners_by_edges), or they are
-        left to the templates."""
+        left to the templates. Returns which of ``feats`` (m,) it placed."""
+        placed = np.zeros(len(feats), bool)
         rows = [j for j, f in enumerate(feats) if f.known]
         slam = self.slam
         target = slam.refined_target
         if len(rows) != 4 or target is None or len(target.xyz) != 4:
-            return
+            return placed
         rows.sort(key=lambda j: feats[j].id)
         quad = z[rows]
         found = np.isfinite(quad).all(axis=1)
         if found.sum() < 3:
-            return
+            return placed
         quad = np.where(found[:, None], quad, uv_pred[rows])
         edged = corners_by_edges(slam.cam, g, quad, slam.settings.click_search_px)
         if edged is not None:
             z[rows] = edged
+            placed[rows] = True
+        return placed
 
     def _watch_target(self, g: np.ndarray, st: FrameStats, frame: int) -> None:
         """The target's four corners predicted in view and not matched for ``reacquire_after``
