@@ -313,17 +313,37 @@ def _parabola(a, b, c):
     return 0.0 if abs(d) < 1e-12 else min(max(0.5 * (a - c) / d, -0.5), 0.5)
 
 
-@compiled_kernel(plane_corners_kernel, _homography, _warp)
+@compiled_kernel(_homography, _warp)
+def _template_from_corners(patch, corners, t, ou, ov):
+    """The (t, t) template whose pixel (a, b) is the current image's (ou + a, ov + b), sampled
+    from the first-view ``patch`` through the homography that takes the template's corners in
+    the patch to ``corners`` (>= 4, 2) px in the current image; and whether the warp was valid
+    (every sample inside the patch)."""
+    h = t // 2
+    ph = patch.shape[0] // 2
+    src = np.empty((4, 2))
+    dst = np.empty((4, 2))
+    src[0, 0], src[0, 1] = ph - h, ph - h
+    src[1, 0], src[1, 1] = ph + h, ph - h
+    src[2, 0], src[2, 1] = ph + h, ph + h
+    src[3, 0], src[3, 1] = ph - h, ph + h
+    for k in range(4):
+        dst[k, 0] = corners[k, 0] - ou
+        dst[k, 1] = corners[k, 1] - ov
+    Hm = _homography(dst, src)
+    if not np.isfinite(Hm).all():
+        return np.empty((t, t), np.float32), False
+    return _warp(patch, Hm, t)
+
+
+@compiled_kernel(plane_corners_kernel, _template_from_corners)
 def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, lens):
     """Each feature's template predicted for the current camera (r, R): (m, t, t) float32, and
     whether it was warped (m,) (else it is the first-view template)."""
     m, t = templates.shape[0], templates.shape[1]
     h = t // 2
-    ph = patches.shape[1] // 2
     out = templates.copy()
     done = np.zeros(m, np.bool_)
-    src = np.empty((4, 2))
-    dst = np.empty((4, 2))
     for i in range(m):
         if not warp[i]:
             continue
@@ -333,19 +353,8 @@ def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, 
         side = math.hypot(corners[1, 0] - corners[0, 0], corners[1, 1] - corners[0, 1]) / (2 * h)
         if not 0.5 < side < 2.0:                  # the template no longer describes the feature
             continue
-        cu, cv = corners[4, 0], corners[4, 1]
         # template pixel (a, b) <-> current image (cu - h + a, cv - h + b) <-> first-view patch
-        src[0, 0], src[0, 1] = ph - h, ph - h
-        src[1, 0], src[1, 1] = ph + h, ph - h
-        src[2, 0], src[2, 1] = ph + h, ph + h
-        src[3, 0], src[3, 1] = ph - h, ph + h
-        for k in range(4):
-            dst[k, 0] = corners[k, 0] - (cu - h)
-            dst[k, 1] = corners[k, 1] - (cv - h)
-        Hm = _homography(dst, src)
-        if not np.isfinite(Hm).all():
-            continue
-        tpl, inside = _warp(patches[i], Hm, t)
+        tpl, inside = _template_from_corners(patches[i], corners, t, corners[4, 0] - h, corners[4, 1] - h)
         if inside:
             out[i] = tpl
             done[i] = True
@@ -470,21 +479,14 @@ def _zncc_at(grey, tpl, u, v):
     return 2.0 * (1.0 - stw / math.sqrt(stt * sww))
 
 
-@compiled_kernel(plane_corners_kernel, _homography, _warp, _zncc_at)
+@compiled_kernel(plane_corners_kernel, _template_from_corners, _zncc_at)
 def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, normals):
     """The score ``2 (1 - ZNCC)`` (k,) of the feature's first-view patch warped into the current
     view by the plane through ``y`` with each of ``normals`` (k, 3), centred on the feature's
     match ``z`` (2,) px, against the image there; 2 where a normal gives no valid warp."""
     k = normals.shape[0]
     h = t // 2
-    ph = patch.shape[0] // 2
     out = np.full(k, 2.0)
-    src = np.empty((4, 2))
-    dst = np.empty((4, 2))
-    src[0, 0], src[0, 1] = ph - h, ph - h
-    src[1, 0], src[1, 1] = ph + h, ph - h
-    src[2, 0], src[2, 1] = ph + h, ph + h
-    src[3, 0], src[3, 1] = ph - h, ph + h
     zu, zv = int(round(z[0])), int(round(z[1]))
     for c in range(k):
         corners = plane_corners_kernel(rays0, normals[c], r0, y, r, R, model, lens)
@@ -495,16 +497,9 @@ def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, nor
             continue                      # the first view's centre lands off the match on this plane
         # The warped patch moved so that its centre lands on the match, sampled on the grid of
         # the image window about the match's pixel: only the plane's shape is compared.
-        for q in range(4):
-            dst[q, 0] = corners[q, 0] - (cu - h) + (z[0] - zu)
-            dst[q, 1] = corners[q, 1] - (cv - h) + (z[1] - zv)
-        Hm = _homography(dst, src)
-        if not np.isfinite(Hm).all():
-            continue
-        tpl, inside = _warp(patch, Hm, t)
-        if not inside:
-            continue
-        out[c] = _zncc_at(grey, tpl, zu, zv)
+        tpl, inside = _template_from_corners(patch, corners, t, cu - h - (z[0] - zu), cv - h - (z[1] - zv))
+        if inside:
+            out[c] = _zncc_at(grey, tpl, zu, zv)
     return out
 
 
