@@ -75,3 +75,66 @@ def test_the_scores_inside_the_ellipse_are_opencvs_zncc_and_flat_windows_are_lef
         np.testing.assert_allclose(grid[scored], 2 * (1 - ncc[scored]), atol=2e-4)
         assert np.isinf(grid[~inside]).all()
         assert np.isinf(grid[inside & (win_var < FLAT_VARIANCE - 1e-3)]).all()
+
+
+def test_the_coarse_to_fine_search_scores_the_exhaustive_best_the_same_from_a_fraction_of_positions():
+    """The coarse-to-fine search (one pyramid level, then descents at every pixel) against the
+    exhaustive one, on integer grey levels (as decoded images are) with 15 x 15 templates in
+    tilted 3-sigma ellipses of 400-1500 px, each holding the template's content twice (once with
+    noise, a weaker rival): the same best position and score, to the bit, and every score it
+    computes equal to the exhaustive one there, at under a fifth of the positions."""
+    from runtime.slam.matching import _best_in_grid, _zncc_coarse_to_fine, _zncc_in_ellipse
+
+    rng = np.random.default_rng(7)
+    fractions = []
+    for case in range(24):
+        img = np.round(textured(100 + case, (240, 320)))
+        src = rng.integers((20, 20), (300, 220))
+        tpl = img[src[1] - 7:src[1] + 8, src[0] - 7:src[0] + 8].copy()
+        uv = np.array([160.0, 120.0]) + rng.uniform(-3, 3, 2)
+        S = np.diag(rng.uniform(12.0, 40.0, 2))
+        S[0, 1] = S[1, 0] = rng.uniform(-0.5, 0.5) * np.sqrt(S[0, 0] * S[1, 1])
+        # The content at a true position and a noisy copy at another, both inside the ellipse
+        # and apart.
+        while True:
+            at = np.round(uv + rng.uniform(-1.6, 1.6, (2, 2)) @ np.linalg.cholesky(S).T).astype(int)
+            if np.abs(at[0] - at[1]).max() >= 16:
+                break
+        img[at[1, 1] - 7:at[1, 1] + 8, at[1, 0] - 7:at[1, 0] + 8] = np.clip(np.round(tpl + rng.normal(0, 12.0, tpl.shape)), 0, 255)
+        img[at[0, 1] - 7:at[0, 1] + 8, at[0, 0] - 7:at[0, 0] + 8] = tpl
+        Si = np.linalg.inv(S)
+        hu, hv = 3 * np.sqrt(S[0, 0]), 3 * np.sqrt(S[1, 1])
+        u0, v0 = int(np.floor(uv[0] - hu)), int(np.floor(uv[1] - hv))
+        nu, nv = int(np.ceil(uv[0] + hu)) - u0 + 1, int(np.ceil(uv[1] + hv)) - v0 + 1
+        args = (img, tpl, u0, v0, nu, nv, uv[0], uv[1], Si[0, 0], Si[0, 1], Si[1, 1], 9.0)
+        full = _zncc_in_ellipse(*args)
+        fast = _zncc_coarse_to_fine(*args, 3, 0.0, 10**6)           # never exhaustive
+        assert _best_in_grid(full) == _best_in_grid(fast), case
+        i, j, score = _best_in_grid(full)
+        assert score < 1e-4 and np.hypot(u0 + i - at[0, 0], v0 + j - at[0, 1]) < 0.5, case   # the copy
+        seen = np.isfinite(fast)
+        np.testing.assert_array_equal(fast[seen], full[seen])
+        fractions.append(seen.sum() / np.isfinite(full).sum())
+    assert max(fractions) < 0.2, fractions
+
+
+def test_a_level_valley_is_searched_exhaustively():
+    """An edge's template in an image of the edge with noise: its scores along the edge are level
+    (a coarse-to-fine descent would stop at a local best), so the search is the exhaustive
+    one, every score of the ellipse; a distinct feature's is not."""
+    from runtime.slam.matching import COARSE_LEVEL, COARSE_LEVEL_MOST, _zncc_coarse_to_fine, _zncc_in_ellipse
+
+    rng = np.random.default_rng(3)
+    img = np.where(np.arange(320)[None, :] < 161, 60.0, 190.0) * np.ones((240, 1))
+    img = np.round(np.clip(img + rng.normal(0, 3.0, img.shape), 0, 255))
+    tpl = img[20:35, 154:169].copy()                             # the edge, far from the search
+    Si = np.linalg.inv(np.diag([30.0, 30.0]))
+    args = (img, tpl, 140, 100, 41, 41, 160.0, 120.0, Si[0, 0], Si[0, 1], Si[1, 1], 9.0)
+    full = _zncc_in_ellipse(*args)
+    edge = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST)
+    np.testing.assert_array_equal(edge, full)
+    distinct = np.round(textured(5, (240, 320)))
+    tpl = distinct[113:128, 153:168].copy()
+    args = (distinct, tpl) + args[2:]
+    fast = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST)
+    assert np.isfinite(fast).sum() < 0.2 * np.isfinite(_zncc_in_ellipse(*args)).sum()
