@@ -283,6 +283,8 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
         mlo, mhi = (lo + 1) // 2, hi // 2
         if mhi < mlo:
             continue
+        # The chord and its correlation as in _zncc_in_ellipse, written out again: as called
+        # functions (tried) the compiler no longer vectorised the run, half the speed.
         corr[mlo:mhi + 1] = 0.0
         run = np.uint64(mhi + 1 - mlo)
         for b in range(tc):
