@@ -136,17 +136,22 @@ def _region_integrals(grey, y0, x0, rh, rw):
 
 
 @compiled_kernel(fastmath={"contract", "reassoc"})
-def _score_from_sums(corr, tn2, ii, ii2, i, j, t):
+def _score(corr, tn2, sw, sw2, n):
     """``2 (1 - ZNCC)`` from the correlation ``corr`` of the zero-mean template (squares' sum
-    ``tn2``) with the window whose top-left is (i, j) in the region's integral images; inf for a
-    flat window."""
-    n = t * t
-    sw = ii[j + t, i + t] - ii[j, i + t] - ii[j + t, i] + ii[j, i]
-    sw2 = ii2[j + t, i + t] - ii2[j, i + t] - ii2[j + t, i] + ii2[j, i]
+    ``tn2``) with a window of ``n`` pixels whose sum and sum of squares are ``sw``, ``sw2``; inf
+    for a flat window."""
     var = sw2 - sw * sw / n
     if var < FLAT_VARIANCE * n:
         return np.inf
     return 2.0 * (1.0 - min(max(corr / math.sqrt(tn2 * var), -1.0), 1.0))
+
+
+@compiled_kernel(_score, fastmath={"contract", "reassoc"})
+def _score_from_sums(corr, tn2, ii, ii2, i, j, t):
+    """``_score`` of the window whose top-left is (i, j) in the region's integral images."""
+    sw = ii[j + t, i + t] - ii[j, i + t] - ii[j + t, i] + ii[j, i]
+    sw2 = ii2[j + t, i + t] - ii2[j, i + t] - ii2[j + t, i] + ii2[j, i]
+    return _score(corr, tn2, sw, sw2, t * t)
 
 
 @compiled_kernel(_zero_mean_into, _region_integrals, _score_from_sums, fastmath={"contract", "reassoc"})
@@ -221,7 +226,8 @@ def _window_sums(grey, T, y, x):
     return c, sw, sw2
 
 
-@compiled_kernel(_zero_mean_into, _region_integrals, _score_from_sums, _window_sums, _zncc_in_ellipse, fastmath={"contract", "reassoc"})
+@compiled_kernel(_zero_mean_into, _region_integrals, _score, _score_from_sums, _window_sums, _zncc_in_ellipse,
+                 fastmath={"contract", "reassoc"})
 def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2, peaks, level, most):
     """The scores of ``_zncc_in_ellipse`` at the positions a coarse-to-fine search visits, inf
     elsewhere. Coarse: the region and the template averaged over 2 x 2 blocks (one pyramid
@@ -300,16 +306,7 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
                 continue
             coarse[k, m] = _score_from_sums(corr[m], tcn2, ii, ii2, m, k, tc)
     # A level valley (an edge, a repeated pattern): the exhaustive search.
-    c_min = np.inf
-    for k in range(nvc):
-        for m in range(nuc):
-            c_min = min(c_min, coarse[k, m])
-    near = 0
-    for k in range(nvc):
-        for m in range(nuc):
-            if coarse[k, m] <= c_min + level:
-                near += 1
-    if near > most:
+    if (coarse <= coarse.min() + level).sum() > most:
         return _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2)
     # The coarse grid's least local minima (over its 8 neighbours).
     best_s = np.full(peaks, np.inf)
@@ -347,9 +344,7 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
                         du, dv = u0 + i - uv0, v0 + j - uv1
                         if iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv <= n2:
                             c, sw, sw2 = _window_sums(grey, T, y0 + j, x0 + i)
-                            var = sw2 - sw * sw / n
-                            if var >= FLAT_VARIANCE * n:
-                                grid[j, i] = 2.0 * (1.0 - min(max(c / math.sqrt(tn2 * var), -1.0), 1.0))
+                            grid[j, i] = _score(c, tn2, sw, sw2, n)
                     if grid[j, i] < s_min:
                         ni, nj, s_min = i, j, grid[j, i]
             if ni == ci and nj == cj:

@@ -168,6 +168,16 @@ class FrameStats:
     skipped: str = ""
 
 
+def _from_first_view(Y: np.ndarray, r: np.ndarray, r0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each point Y (N, 3) is seen from its first view, the camera now at r (3,) and
+    then at r0 (N, 3): the cosine of the angle between the two viewing rays (N,) and the ratio
+    of the ranges, now over then (N,)."""
+    a, b = Y - r, Y - r0
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    cos = np.clip(np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12), -1.0, 1.0)
+    return cos, na / np.maximum(nb, 1e-9)
+
+
 class _Track:
     """One filter and its map: the state, the features' appearance and bookkeeping, rays being
     initialised (particles), and the evidence for its start-up hypothesis."""
@@ -359,11 +369,7 @@ class _Track:
         view_noise_scale)^2``; the target's points, printed corners whose plane is known, are
         located more closely (``known_sigma_px``)."""
         s = self.slam.settings
-        a = Y - self.state.r
-        b = Y - np.array([f.r0 for f in self.features])
-        na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
-        cos = np.clip(np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12), -1.0, 1.0)
-        ratio = na / np.maximum(nb, 1e-9)
+        cos, ratio = _from_first_view(Y, self.state.r, np.array([f.r0 for f in self.features]))
         known = np.array([f.known for f in self.features], bool)
         angle = np.where(known, s.max_view_angle_known_deg, s.max_view_angle_deg)
         rmax = np.where(known, s.max_range_ratio_known, s.max_range_ratio)
@@ -868,10 +874,7 @@ class _Track:
         js, ks = np.array(cand).T
         r = self.state.r
         Y = self.world_points()
-        a = Y[ks] - r
-        b = Y[ks] - np.array([feats[k].r0 for k in ks])
-        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
-        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        angle = np.degrees(np.arccos(_from_first_view(Y[ks], r, np.array([feats[k].r0 for k in ks]))[0]))
         gain = angle - np.array([feats[k].normal_view_deg for k in ks])
         due = [i for i in np.argsort(-gain, kind="stable")[:s.normals_per_frame] if gain[i] >= s.normal_step_deg]
         if not due:
