@@ -127,8 +127,9 @@ class MapSettings:
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
     noise_every: int = 15                # frames between estimates of the image noise (new features' contrast)
     # -- inverse depth (Civera et al.) --
-    rho0: float = 1.0                    # initial inverse depth, 1/m
+    rho0: float = 1.0                    # initial inverse depth, 1/m, until the map has depths
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
+    scene_depth_prior: bool = True       # rho0: the median of the frame's matches (inverse_depth.scene_prior)
     linearity_threshold: float = 0.1     # convert to a point below this linearity index
     # -- a natural feature's persistent residual (MapFeature.drift) --
     drift_memory: float = 0.1            # the newest residual's weight in its exponential mean

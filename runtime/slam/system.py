@@ -838,7 +838,8 @@ class _Track:
             ok = np.isfinite(rays).all(axis=1)
             chosen, uvs, rays = [c for c, o in zip(chosen, ok) if o], uvs[ok], rays[ok]
             try:
-                added = add_inverse_depth_features(self.state, uvs, cam, s.rho0, s.sigma_rho, slam.cfg.sigma_pixel**2)
+                added = add_inverse_depth_features(self.state, uvs, cam, *self._depth_prior(),
+                                                   slam.cfg.sigma_pixel**2)
             except (FeatureNotMeasurable, SlamNumericalError):
                 added = []
             if len(added) == len(chosen):
@@ -852,6 +853,16 @@ class _Track:
             elif added:                                 # cannot happen: the rays were checked above
                 self.state.remove_features(added)
         st.initialising = len(self.rays) if s.features == "particles" else int((self.state.kinds == INVERSE_DEPTH).sum())
+
+    def _depth_prior(self) -> tuple[float, float]:
+        """New inverse-depth features' prior (rho0, sigma_rho), 1/m: centred on the points this
+        frame's measurement used (inverse_depth.scene_prior) unless the settings fix it."""
+        s, sv = self.slam.settings, self.last
+        if not s.scene_depth_prior or sv is None:
+            return s.rho0, s.sigma_rho
+        used = set(sv.ids[sv.used].tolist())         # by id: _delete may have renumbered the map
+        ks = [k for k, f in enumerate(self.features) if f.id in used]
+        return inverse_depth.scene_prior(self.world_points()[ks], self.state.r, s.rho0, s.sigma_rho)
 
     def _normals_from_views(self, g: np.ndarray) -> None:
         """The plane normals of features matched this frame whose view has turned far enough
