@@ -38,11 +38,17 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     near = np.isfinite(occ).all(axis=1) & (np.abs(occ - [w / 2, h / 2]) <= [w / 2 + radius, h / 2 + radius]).all(axis=1)
     for u, v in np.rint(occ[near]).astype(int).tolist():
         cv2.circle(mask, (u, v), radius, 0, -1)
-    pts = cv2.goodFeaturesToTrack(img, maxCorners=n, qualityLevel=quality, minDistance=min_distance / s, mask=mask,
-                                  blockSize=5 if s == 1 else 3, useHarrisDetector=False)
+    # Only the border's inside is searched: the detector gets that part of the image and a frame
+    # of 4 px, as far as a masked-in pixel's response and its 3 x 3 non-maximum test reach (Sobel
+    # 1 px, the block 2 px, the neighbour 1 px), so its corners are those of the whole image.
+    block = 5 if s == 1 else 3
+    m = max(0, b - (block // 2 + 2))
+    pts = cv2.goodFeaturesToTrack(img[m:h - m, m:w - m], maxCorners=n, qualityLevel=quality,
+                                  minDistance=min_distance / s, mask=mask[m:h - m, m:w - m], blockSize=block,
+                                  useHarrisDetector=False)
     if pts is None:
         return np.empty((0, 2))
-    return pts.reshape(-1, 2).astype(float) * s        # pyrDown samples input pixel (2x, 2y)
+    return (pts.reshape(-1, 2).astype(float) + m) * s        # pyrDown samples input pixel (2x, 2y)
 
 
 #: Immerkaer's noise kernel: the difference of two Laplacians, blind to a local plane; on noise
@@ -86,6 +92,6 @@ def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: 
     out = []
     for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), size // 2 + 1), **kw):
         t = extract_template(image_grey, uv, size)
-        if t is not None and t.std() > min_std:
+        if t is not None and cv2.meanStdDev(t)[1][0, 0] > min_std:     # numpy's std (ddof 0), without its overhead
             out.append((np.round(uv), t))
     return out

@@ -33,7 +33,8 @@ from .motion import apply_quaternion_jacobian
 from .quaternion import normalise_quaternion_jacobian
 from .state import POSE_DIM, Q_SLICE, TD_INDEX, SlamNumericalError, State, check_covariance, check_mean, mirror_upper
 
-__all__ = ["FeatureNotMeasurable", "UpdateResult", "FrameUpdate", "innovation_covariances", "update", "add_inverse_depth_feature",
+__all__ = ["FeatureNotMeasurable", "UpdateResult", "FrameUpdate", "innovation_covariances", "innovation_nis", "update",
+           "add_inverse_depth_feature",
            "add_point_feature", "convert_to_point", "point_conversions"]
 
 
@@ -130,6 +131,23 @@ def innovation_covariances(state: State, pred: Prediction, R_pix, r_scale=None) 
     return S
 
 
+@compiled_kernel()
+def innovation_nis(nu, S):
+    """(m,) each innovation's ``nu_i^T S_i^-1 nu_i`` for nu (m, 2) px and S (m, 2, 2) px^2
+    (closed form); inf where ``S_i`` is not positive definite or not finite."""
+    m = nu.shape[0]
+    d2 = np.empty(m)
+    for i in range(m):
+        a, b, c = S[i, 0, 0], 0.5 * (S[i, 0, 1] + S[i, 1, 0]), S[i, 1, 1]
+        det = a * c - b * b
+        if not (a > 0.0 and det > 0.0):
+            d2[i] = np.inf
+            continue
+        x, y = nu[i, 0], nu[i, 1]
+        d2[i] = (c * x * x - 2.0 * b * x * y + a * y * y) / det
+    return d2
+
+
 def _add_time_offset_terms(S: np.ndarray, H_t: np.ndarray, c: np.ndarray, P_tt: float) -> None:
     """S_i += u c^T + c u^T + P_tt u u^T in place: the clock offset's column of H_i (``u`` =
     H_t[i], (2,)), with ``c`` (m, 2) the rest of H_i times P's clock-offset column."""
@@ -184,6 +202,123 @@ def _h_times_kernel(A, kinds, starts, dims, ks, H_c, H_f):
                 for c in range(q):
                     out[2 * i + a, c] += h * A[j, c]
     return out
+
+
+@compiled_kernel()
+def _lower_inverse(L):
+    """L^-1 of a lower-triangular ``L`` (k, k) with a positive diagonal (forward substitution)."""
+    k = L.shape[0]
+    Linv = np.zeros((k, k))
+    for c in range(k):
+        Linv[c, c] = 1.0 / L[c, c]
+        for i in range(c + 1, k):
+            acc = 0.0
+            for j in range(c, i):
+                acc += L[i, j] * Linv[j, c]
+            Linv[i, c] = -acc / L[i, i]
+    return Linv
+
+
+@compiled_kernel()
+def _batch_kernel(P, U, r, x, kinds, starts, dims, ks, H_c, H_f, u, td, R, scales, nu):
+    """One batch of :class:`FrameUpdate` in a single call: ``S`` (2m, 2m), ``U_new = P H^T
+    L^-T`` (n, 2m) and the new mean ``x + U_new L^-1 nu``, under ``P = P0 - U U^T`` (``U``
+    (n, r)); ``u`` (2m,) H's column of the clock offset at index ``td`` (empty without one).
+    Returns ok = False (and nothing else valid) when ``S`` is not finite or not positive
+    definite."""
+    n = P.shape[0]
+    PHt, HU = _pht_kernel(P, U, r, kinds, starts, dims, ks, H_c, H_f)
+    mm = PHt.shape[1]
+    if u.shape[0]:
+        for row in range(n):
+            p = P[row, td]
+            for c in range(mm):
+                PHt[row, c] += p * u[c]
+        for c in range(mm):
+            for j in range(r):
+                HU[c, j] += u[c] * U[td, j]
+    if r:
+        PHt -= np.dot(U, HU.T)
+    S = _h_times_kernel(PHt, kinds, starts, dims, ks, H_c, H_f)
+    if u.shape[0]:
+        for a in range(mm):
+            for b in range(mm):
+                S[a, b] += u[a] * PHt[td, b]
+    for a in range(mm):
+        for b in range(a + 1, mm):
+            v = 0.5 * (S[a, b] + S[b, a])
+            S[a, b] = v
+            S[b, a] = v
+    for i in range(mm // 2):
+        for a in range(2):
+            for b in range(2):
+                S[2 * i + a, 2 * i + b] += scales[i] * R[a, b]
+    empty = np.zeros((0, 0))
+    if not np.isfinite(S).all():
+        return False, S, empty, x
+    for a in range(mm):                     # Cholesky's own test: a pivot that is not positive
+        if not S[a, a] > 0.0:
+            return False, S, empty, x
+    L = np.linalg.cholesky(S)
+    Linv = _lower_inverse(L)
+    U_new = np.dot(PHt, Linv.T)
+    return True, S, U_new, x + np.dot(U_new, np.dot(Linv, nu))
+
+
+@compiled_kernel()
+def _commit_check_kernel(P, U, J):
+    """Everything :meth:`FrameUpdate.commit`'s guard needs before ``P`` is touched: the
+    quaternion's rows (4, n) of ``J (P - U U^T) J'`` (T: the identity but ``J`` on the
+    quaternion's block, which it keeps exactly symmetric), and whether ``U`` and those rows are
+    finite and no new variance is negative beyond rounding (1e-9 of the largest)."""
+    n, k = U.shape
+    q0 = Q_SLICE.start
+    A = np.empty((4, n))                    # P's quaternion rows less U U^T's
+    for a in range(4):
+        for c in range(n):
+            acc = 0.0
+            for j in range(k):
+                acc += U[q0 + a, j] * U[c, j]
+            A[a, c] = P[q0 + a, c] - acc
+    rows = np.dot(J, A)
+    qq = np.dot(np.ascontiguousarray(rows[:, q0:q0 + 4]), J.T)
+    for a in range(4):
+        for b in range(4):
+            rows[a, q0 + b] = 0.5 * (qq[a, b] + qq[b, a])
+    healthy = np.isfinite(rows).all()
+    d_max = 0.0
+    d_min = np.inf
+    for i in range(n):
+        if q0 <= i < q0 + 4:
+            d = rows[i - q0, i]
+        else:
+            acc = 0.0
+            for j in range(k):
+                healthy &= np.isfinite(U[i, j])
+                acc += U[i, j] * U[i, j]
+            d = P[i, i] - acc
+        d_max = max(d_max, d)
+        d_min = min(d_min, d)
+    for a in range(4):
+        for j in range(k):
+            healthy &= np.isfinite(U[q0 + a, j])
+    return rows, healthy and d_min >= -1e-9 * max(d_max, 2.2250738585072014e-308)
+
+
+@compiled_kernel(mirror_upper)
+def _mirror_and_set_quaternion_rows(P, rows):
+    """After the rank update of P's upper triangle (read in C order): mirror it, then write the
+    quaternion's ``rows`` (4, n) and their transposes."""
+    mirror_upper(P)
+    q0 = Q_SLICE.start
+    n = P.shape[0]
+    for a in range(4):
+        for c in range(n):
+            P[q0 + a, c] = rows[a, c]
+            P[c, q0 + a] = rows[a, c]
+
+
+_NO_COLUMN = np.zeros(0)
 
 
 class FrameUpdate:
@@ -259,29 +394,16 @@ class FrameUpdate:
             raise FeatureNotMeasurable(f"features {ks[~pred.valid].tolist()} have no predicted image point (on or "
                                        f"behind the camera plane, or outside the lens model's domain)")
         r = self._U.shape[1]
-        PHt, HU = _pht_kernel(st.P, self._U, r, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c, pred.H_f)
-        u = None if pred.H_t is None else pred.H_t.reshape(-1)       # H's clock-offset column (2m,)
-        if u is not None:
-            PHt += np.outer(st.P[:, TD_INDEX], u)
-            if r:
-                HU += np.outer(u, self._U[TD_INDEX])
-        if r:
-            PHt -= self._U @ HU.T
-        S = _h_times_kernel(PHt, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c, pred.H_f)
-        if u is not None:
-            S += u[:, None] * PHt[TD_INDEX][None, :]
-        S = 0.5 * (S + S.T) + np.kron(np.diag(_scales(r_scale, m)), self.R)
-        try:
-            if not np.isfinite(S).all():
-                raise np.linalg.LinAlgError
-            L = scipy.linalg.cholesky(S, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            raise SlamNumericalError(f"innovation covariance S of features {ks.tolist()} is not positive definite "
-                                     f"(or not finite); update refused") from None
+        u = _NO_COLUMN if pred.H_t is None else np.ascontiguousarray(pred.H_t.reshape(-1))  # H's clock-offset column
         nu = (z - pred.uv).reshape(-1)
-        Linv = scipy.linalg.solve_triangular(L, np.eye(2 * m), lower=True, check_finite=False)
-        U_new = PHt @ Linv.T                                   # (n, 2m) = P H^T L^-T
-        x = self.x + U_new @ (Linv @ nu)
+        try:
+            ok, S, U_new, x = _batch_kernel(st.P, self._U, r, self.x, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c,
+                                            pred.H_f, u, TD_INDEX, self.R, _scales(r_scale, m), nu)
+        except np.linalg.LinAlgError:
+            ok = False
+        if not ok:
+            raise SlamNumericalError(f"innovation covariance S of features {ks.tolist()} is not positive definite "
+                                     f"(or not finite); update refused")
         check_mean(x, "update", st.describe)
         q_unit, _ = normalise_quaternion_jacobian(x[Q_SLICE])
         x[Q_SLICE] = q_unit
@@ -299,15 +421,8 @@ class FrameUpdate:
             return
         U, P = self._U, st.P
         _, J = normalise_quaternion_jacobian(self.x[Q_SLICE])
-        # Everything the guard needs, before P is touched: U finite (so is P - U U^T), the new
-        # variances, and the quaternion's rows after the normalisation Jacobian.
-        rows = J @ (P[Q_SLICE, :] - U[Q_SLICE] @ U.T)
-        qq = rows[:, Q_SLICE] @ J.T
-        rows[:, Q_SLICE] = 0.5 * (qq + qq.T)
-        d = np.diag(P) - np.einsum("ij,ij->i", U, U)
-        d[Q_SLICE] = np.diag(rows[:, Q_SLICE])
-        tol = 1e-9 * max(float(d.max()), np.finfo(float).tiny)
-        if not (P.flags.c_contiguous and np.isfinite(U).all() and np.isfinite(rows).all() and d.min() >= -tol):
+        rows, healthy = _commit_check_kernel(P, U, J)
+        if not (P.flags.c_contiguous and healthy):
             P = st.P - U @ U.T                               # the guard names the problem
             apply_quaternion_jacobian(P, J)
             st.P = check_covariance(P, "update", check_psd=False, describe=st.describe)
@@ -316,9 +431,7 @@ class FrameUpdate:
         # In place: BLAS's rank-2m update of one triangle (P's C buffer read as Fortran order
         # is the same symmetric matrix), mirrored, then the quaternion's rows and columns.
         scipy.linalg.blas.dsyrk(-1.0, U.T, beta=1.0, c=P.T, trans=1, lower=1, overwrite_c=1)
-        mirror_upper(P)
-        P[Q_SLICE, :] = rows
-        P[:, Q_SLICE] = rows.T
+        _mirror_and_set_quaternion_rows(P, rows)
         st.x = self.x
 
 

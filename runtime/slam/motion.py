@@ -191,6 +191,28 @@ def predict(state: State, dt: float, cfg: SlamConfig, noise_gain: float = 1.0) -
     apply_camera_prediction(state, x_v_new, F, P_new, "predict")
 
 
+@compiled_kernel()
+def _camera_rows_kernel(P, F, P_vv_new, J):
+    """The camera's rows (cd, n) of ``T (F P F^T + Q) T^T`` with the features' columns ``F P_vy``
+    (``P_vv_new`` the camera block before symmetrising, T the identity but the quaternion's
+    normalisation Jacobian ``J`` on q), the camera block exactly symmetric."""
+    cd = F.shape[0]
+    q0 = Q_SLICE.start
+    rows = np.dot(F, np.ascontiguousarray(P[:cd, :]))
+    for a in range(cd):
+        for b in range(cd):
+            rows[a, b] = 0.5 * (P_vv_new[a, b] + P_vv_new[b, a])
+    rows[q0:q0 + 4, :] = np.dot(J, np.ascontiguousarray(rows[q0:q0 + 4, :]))   # T P T^T, T = J on q: the q rows ...
+    cols = np.dot(np.ascontiguousarray(rows[:, q0:q0 + 4]), J.T)  # ... and, in the camera block, its columns
+    rows[:, q0:q0 + 4] = cols
+    for a in range(cd):
+        for b in range(a + 1, cd):
+            v = 0.5 * (rows[a, b] + rows[b, a])
+            rows[a, b] = v
+            rows[b, a] = v
+    return rows
+
+
 def apply_camera_prediction(state: State, x_v_new: np.ndarray, F: np.ndarray, P_vv_new: np.ndarray,
                             where: str) -> None:
     """Write a prediction of the camera block into the state: ``x_v <- x_v_new``,
@@ -201,15 +223,10 @@ def apply_camera_prediction(state: State, x_v_new: np.ndarray, F: np.ndarray, P_
     by the constant-velocity and the inertial predictions."""
     cd = state.cam_dim
     P = state.P
-    rows = F @ P[:cd, :]
-    rows[:, :cd] = 0.5 * (P_vv_new + P_vv_new.T)
     x_v = np.array(x_v_new, float)
     q_unit, J = normalise_quaternion_jacobian(x_v[Q_SLICE])
     x_v[Q_SLICE] = q_unit
-    rows[Q_SLICE, :] = J @ rows[Q_SLICE, :]            # T P T^T, T = J on q: the q rows ...
-    rows[:, Q_SLICE] = rows[:, Q_SLICE] @ J.T          # ... and, in the camera block, its columns
-    blk = rows[:, :cd]
-    rows[:, :cd] = 0.5 * (blk + blk.T)
+    rows = _camera_rows_kernel(P, np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(P_vv_new, dtype=float), J)
     x = state.x.copy()
     x[:cd] = x_v
     check_mean(x, where, state.describe)

@@ -35,7 +35,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics, lens_kernel_args
 
 from .features import FEATURE_DIMS
-from .filter import FrameUpdate, gather_jacobian
+from .filter import FrameUpdate, gather_jacobian, innovation_nis
 from .kernels import compiled_kernel
 from .measurement import Prediction, h_feature_kernel
 from .quaternion import rotation_derivatives_kernel, rotation_kernel
@@ -180,9 +180,7 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
         S2 = fu.innovation_covariances(p2, r_scale[rest])
         nu = z[rest] - p2.uv
         ok = p2.valid & np.isfinite(S2).all(axis=(1, 2))
-        d2 = np.full(len(rest), np.inf)
-        if ok.any():
-            d2[ok] = np.einsum("ni,nij,nj->n", nu[ok], np.linalg.inv(S2[ok]), nu[ok])
+        d2 = np.where(ok, innovation_nis(np.ascontiguousarray(nu), S2), np.inf)
         good = ok & (d2 < rescue_chi2)
         if good.any():
             sel = rest[good]

@@ -50,8 +50,9 @@ from .corners import grey, min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
 from .filter import (FeatureNotMeasurable, FrameUpdate, add_inverse_depth_features, add_point_feature, point_conversions,
-                     innovation_covariances)
+                     innovation_covariances, innovation_nis)
 from .inertial import ImuStream, StillBiases, predict_imu, still_biases
+from .kernels import compiled_kernel
 from .measurement import Prediction, predict, predict_points, predict_uv, ray_from_pixel
 from .motion import (adapted_sigma_a, adapted_sigma_alpha, f_and_dfdx, f_and_dfdx_dfdn, noise_covariance,
                      predict as predict_cv, turning)
@@ -178,6 +179,36 @@ def _from_first_view(Y: np.ndarray, r: np.ndarray, r0: np.ndarray) -> tuple[np.n
     return cos, na / np.maximum(nb, 1e-9)
 
 
+@compiled_kernel()
+def _views_kernel(uv, valid, Y, r, r0s, known, width, height, margin, cos_lim, cos_lim_known, rmax, rmax_known,
+                  angle_unit_deg, log_scale_unit, known_scale):
+    """:meth:`_Track._views` for the features predicted at ``uv`` (N, 2) (``valid``) inside the
+    image (``margin`` px from its edge, as kinematics.camera.in_image): whether each is both in
+    the image and seen close enough to its first view (N,), and its noise scale (N,)."""
+    N = uv.shape[0]
+    ok = np.zeros(N, dtype=np.bool_)
+    scale = np.ones(N)
+    lo = -0.5 + margin
+    for k in range(N):
+        u, v = uv[k, 0], uv[k, 1]
+        if not (valid[k] and u >= lo and u <= width - 0.5 - margin and v >= lo and v <= height - 0.5 - margin):
+            continue
+        a0, a1, a2 = Y[k, 0] - r[0], Y[k, 1] - r[1], Y[k, 2] - r[2]
+        b0, b1, b2 = Y[k, 0] - r0s[k, 0], Y[k, 1] - r0s[k, 1], Y[k, 2] - r0s[k, 2]
+        na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        nb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        cos = min(max((a0 * b0 + a1 * b1 + a2 * b2) / max(na * nb, 1e-12), -1.0), 1.0)
+        ratio = na / max(nb, 1e-9)
+        cl, rm = (cos_lim_known, rmax_known) if known[k] else (cos_lim, rmax)
+        ok[k] = cos >= cl and ratio >= 1.0 / rm and ratio <= rm
+        if known[k]:
+            scale[k] = known_scale
+        else:
+            scale[k] = (1.0 + (math.degrees(math.acos(cos)) / angle_unit_deg) ** 2
+                        + (math.log(max(ratio, 1e-9)) / log_scale_unit) ** 2)
+    return ok, scale
+
+
 class _Track:
     """One filter and its map: the state, the features' appearance and bookkeeping, rays being
     initialised (particles), and the evidence for its start-up hypothesis."""
@@ -192,6 +223,8 @@ class _Track:
         self.score = 0.0
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
+        self._first_views_key: list | None = None
+        self._first_views_cache = (np.zeros((0, 3)), np.zeros(0, bool))
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
         # The first frame any natural feature was mapped in (None: none yet; 0: a map given), so
@@ -360,23 +393,31 @@ class _Track:
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
 
     # ------------------------------------------------------------------ measurement
-    def _views(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For each feature (world points Y (N, 3)): whether it is seen close enough to its first
-        view for its template to hold (viewing angle and range against the first view's
-        centre), and its measurement noise as a multiple of the pixel noise: the template's
-        prediction degrades as the view moves from the first (a wrong plane guess warps it
-        wrongly), ``1 + (angle / view_noise_angle)^2 + (log range ratio / log
-        view_noise_scale)^2``; the target's points, printed corners whose plane is known, are
-        located more closely (``known_sigma_px``)."""
-        s = self.slam.settings
-        cos, ratio = _from_first_view(Y, self.state.r, np.array([f.r0 for f in self.features]))
-        known = np.array([f.known for f in self.features], bool)
-        angle = np.where(known, s.max_view_angle_known_deg, s.max_view_angle_deg)
-        rmax = np.where(known, s.max_range_ratio_known, s.max_range_ratio)
-        ok = (cos >= np.cos(np.radians(angle))) & (ratio >= 1 / rmax) & (ratio <= rmax)
-        scale = 1.0 + (np.degrees(np.arccos(cos)) / s.view_noise_angle_deg) ** 2 \
-            + (np.log(np.maximum(ratio, 1e-9)) / np.log(s.view_noise_scale)) ** 2
-        return ok, np.where(known, (s.known_sigma_px / self.slam.cfg.sigma_pixel) ** 2, scale)
+    def _views(self, pred: Prediction, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each feature predicted by ``pred`` (every feature of the map, in order; its point in
+        ``Y`` (N, 3)): whether it is in the image and seen close enough to its first view for its
+        template to hold (viewing angle and range against the first view's centre), and its
+        measurement noise as a multiple of the pixel noise: the template's prediction degrades as
+        the view moves from the first (a wrong plane guess warps it wrongly), ``1 + (angle /
+        view_noise_angle)^2 + (log range ratio / log view_noise_scale)^2``; the target's points,
+        printed corners whose plane is known, are located more closely (``known_sigma_px``)."""
+        s, cam = self.slam.settings, self.slam.cam
+        r0s, known = self._first_views()
+        return _views_kernel(pred.uv, pred.valid, Y, self.state.r, r0s, known, float(cam.width),
+                             float(cam.height), float(s.margin_px), math.cos(math.radians(s.max_view_angle_deg)),
+                             math.cos(math.radians(s.max_view_angle_known_deg)), float(s.max_range_ratio),
+                             float(s.max_range_ratio_known), float(s.view_noise_angle_deg),
+                             math.log(s.view_noise_scale), (s.known_sigma_px / self.slam.cfg.sigma_pixel) ** 2)
+
+    def _first_views(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every feature's first-view centre (N, 3) and whether it is a target point (N,), kept
+        while the map holds the same features (neither changes during a feature's life)."""
+        key = [f.id for f in self.features]
+        if self._first_views_key != key:
+            self._first_views_cache = (np.array([f.r0 for f in self.features], float).reshape(-1, 3),
+                                       np.array([f.known for f in self.features], bool))
+            self._first_views_key = key
+        return self._first_views_cache
 
     def world_points(self) -> np.ndarray:
         """(N, 3) every feature's point (an inverse-depth feature's at its current depth, at
@@ -387,28 +428,28 @@ class _Track:
         st = self.state
         return inverse_depth.points_and_linearity_kernel(st.x, st.P, st.kinds, st.starts, st.anchors, st.r, 0.05)
 
-    def _select(self) -> tuple[Prediction, np.ndarray, np.ndarray, int]:
-        """The features to measure this frame, their innovation covariances and noise scales, and
-        how many are predicted visible."""
+    def _select(self) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
+        """The features to measure this frame, their innovation covariances and noise scales, how
+        many are predicted visible, and their points (m, 3)."""
         s, cam = self.slam.settings, self.slam.cam
         st = self.state
         ks = np.arange(st.n_features)
         if not len(ks):
             empty = predict(st, ks, cam)
-            return empty, np.zeros((0, 2, 2)), np.zeros(0), 0
+            return empty, np.zeros((0, 2, 2)), np.zeros(0), 0, np.zeros((0, 3))
         pred = predict(st, ks, cam)
-        ok = pred.valid & in_image(cam, np.nan_to_num(pred.uv, nan=-1e9), margin=s.margin_px)
-        view_ok, r_scale = self._views(self.world_points())
+        Y = self.world_points()
+        ok, r_scale = self._views(pred, Y)
+        sel = np.flatnonzero(ok)
+        r_scale = r_scale[sel]
         if s.drift_gain > 0:
             sig2 = self.slam.cfg.sigma_pixel ** 2
-            r_scale = r_scale * np.array([f.drift_variance_scale(s.drift_gain, sig2) for f in self.features])
-        ok &= view_ok
-        sel = np.flatnonzero(ok)
+            r_scale = r_scale * np.array([self.features[k].drift_variance_scale(s.drift_gain, sig2) for k in sel])
         pred = pred.take(sel)
         self.in_view_ids = {self.features[k].id for k in pred.ks}
-        r_scale = r_scale[sel]
         S = innovation_covariances(st, pred, self.slam.cfg.sigma_pixel**2, r_scale)
-        area = 9 * math.pi * np.sqrt(np.maximum(np.linalg.det(S), 0))   # the 3-sigma ellipse, px^2
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        area = 9 * math.pi * np.sqrt(np.maximum(det, 0))   # the 3-sigma ellipse, px^2
         searchable = np.isfinite(area) & (area <= s.max_search_area_px)
         visible = int(len(sel))
         idx = np.flatnonzero(searchable)
@@ -417,10 +458,10 @@ class _Track:
             # spread over the image.
             feats = [self.features[k] for k in pred.ks[idx]]
             reliability = np.array([f.reliability for f in feats])
-            priority = reliability + 1e-6 * np.log(np.maximum(np.linalg.det(S[idx]), 1e-12))
+            priority = reliability + 1e-6 * np.log(np.maximum(det[idx], 1e-12))
             idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
         pred = pred.take(idx)
-        return pred, S[idx], r_scale[idx], visible
+        return pred, S[idx], r_scale[idx], visible, Y[pred.ks]
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
         """``n`` of the candidates ``idx``: the target's points first, then round-robin over a
@@ -443,9 +484,8 @@ class _Track:
         found."""
         slam = self.slam
         s = slam.settings
-        pred, S, r_scale, visible = self._select()
+        pred, S, r_scale, visible, Y = self._select()
         feats = [self.features[k] for k in pred.ks]
-        Y = self.world_points()[pred.ks] if len(feats) else np.zeros((0, 3))
         warp = np.array([slam.warped(f) for f in feats], bool)
         z, _, found = match_features(g, feats, warp, Y, self.state.x_v, slam.cam, pred.uv, S,
                                      s.match_score, s.max_search_area_px)
@@ -517,7 +557,7 @@ class _Track:
         # Evidence for this track's start-up hypothesis: the prior innovations' Mahalanobis
         # distances, capped at a gate (a miss or an outlier costs the gate).
         nu = z[fi] - sub.uv
-        d2 = np.einsum("ni,nij,nj->n", nu, np.linalg.inv(S[fi]), nu)
+        d2 = innovation_nis(nu, S[fi])
         for j, k in enumerate(sub.ks):
             if res.used[j]:
                 h = self.features[k].nis

@@ -61,13 +61,13 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     track = slam.track
     for f in track.features:
         f.drift = None                                # a clean slate: only the one set below
-    pred0, S0, r0_scale, _ = track._select()
+    pred0, S0, r0_scale, _, _ = track._select()
     natural = [j for j, k in enumerate(pred0.ks) if not track.features[k].known]
     assert natural, "the scene gave no natural feature in view"
     j = natural[0]
     k = int(pred0.ks[j])
     track.features[k].drift = np.array([2.0, 0.0])
-    pred1, S1, r1_scale, _ = track._select()
+    pred1, S1, r1_scale, _, _ = track._select()
     assert list(pred1.ks) == list(pred0.ks)
     scale = 1.0 + slam.settings.drift_gain * 4.0 / DEFAULT_CONFIG.sigma_pixel**2
     np.testing.assert_allclose(r1_scale[j], r0_scale[j] * scale)
@@ -76,5 +76,5 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     others = [i for i in range(len(pred0.ks)) if i != j]
     np.testing.assert_allclose(S1[others], S0[others])
     slam.settings = replace(slam.settings, drift_gain=0.0)
-    _, S2, _, _ = track._select()
+    _, S2, _, _, _ = track._select()
     np.testing.assert_allclose(S2, S0)

@@ -5,6 +5,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+import pytest
 
 import slam_testing as st
 from runtime.slam.corners import find_new_corners, grey, new_features
@@ -187,3 +188,25 @@ def test_a_feature_without_a_patch_or_plane_keeps_its_template():
     t = np.ones((15, 15), np.float32)
     f = MapFeature(0, t, 0, np.zeros(3))
     assert warped_template(f, np.r_[0, 0, 0, 1.0, 0, 0, 0], np.array([0, 0, 1.0]), CAM) is t
+
+
+@pytest.mark.parametrize("size, border, min_distance", [((240, 320), 10, 15.0), ((240, 320), 3, 15.0),
+                                                        ((480, 640), 20, 30.0), ((480, 640), 11, 30.0)])
+def test_new_corners_searched_inside_the_border_are_those_of_the_whole_image(size, border, min_distance):
+    """The detector runs on the border's inside and a frame around it: the corners, their order
+    included, are OpenCV's over the whole image with the same mask."""
+    img = textured(3, size)
+    occ = np.random.default_rng(4).uniform([0, 0], [size[1], size[0]], size=(25, 2))
+    got = find_new_corners(img, occ, 16, min_distance=min_distance, border=border)
+    s = 2 if size[1] >= 640 else 1
+    ref_img = cv2.pyrDown(img) if s == 2 else img
+    h, w = ref_img.shape
+    b = int(np.ceil(border / s))
+    mask = np.zeros((h, w), np.uint8)
+    mask[b:h - b, b:w - b] = 255
+    for u, v in np.rint(occ / s).astype(int):
+        cv2.circle(mask, (int(u), int(v)), int(np.ceil(min_distance / s)), 0, -1)
+    ref = cv2.goodFeaturesToTrack(ref_img, maxCorners=16, qualityLevel=0.01, minDistance=min_distance / s, mask=mask,
+                                  blockSize=5 if s == 1 else 3, useHarrisDetector=False).reshape(-1, 2) * s
+    assert len(got) >= 8
+    np.testing.assert_array_equal(got, ref)

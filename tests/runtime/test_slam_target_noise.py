@@ -11,6 +11,7 @@ import numpy as np
 import test_slam_startup as su
 from runtime.sequence import Target
 from runtime.slam.config import MapSettings
+from runtime.slam.measurement import predict
 from runtime.slam.system import MonoSLAM
 
 
@@ -24,7 +25,7 @@ def started(known_sigma_px: float) -> MonoSLAM:
 def test_target_corners_use_their_own_noise_and_natural_features_the_view_scaled_one():
     s = started(0.5)
     tr = s.track
-    ok, scale = tr._views(tr.world_points())
+    ok, scale = tr._views(predict(tr.state, np.arange(tr.state.n_features), s.cam), tr.world_points())
     known = np.array([f.known for f in tr.features])
     assert known.sum() == 4 and ok[known].all()
     np.testing.assert_allclose(scale[known], (0.5 / s.cfg.sigma_pixel) ** 2)

@@ -18,6 +18,7 @@ from runtime.slam.filter import (
     add_inverse_depth_feature,
     add_point_feature,
     innovation_covariances,
+    innovation_nis,
     update,
 )
 from runtime.slam.measurement import init_point_from_depth, predict
@@ -399,3 +400,17 @@ def test_the_clock_offset_moves_a_prediction_along_the_cameras_motion():
     s.t_ref = t_d
     np.testing.assert_allclose(predict(s, ks, cam).uv, uv0, atol=1e-9)
     np.testing.assert_allclose(predict(s, ks, cam).H_t, pred.H_t, atol=1e-12)
+
+
+def test_innovation_nis_is_the_mahalanobis_distance_and_refuses_what_is_not_a_covariance():
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(40, 2, 2))
+    S = A @ A.transpose(0, 2, 1) + 0.05 * np.eye(2)
+    nu = rng.normal(scale=3.0, size=(40, 2))
+    expected = np.array([v @ np.linalg.solve(s, v) for v, s in zip(nu, S)])
+    np.testing.assert_allclose(innovation_nis(nu, S), expected, rtol=1e-12)
+    S[3] = np.nan
+    S[4] = [[1.0, 2.0], [2.0, 1.0]]                      # indefinite
+    S[5] = [[-1.0, 0.0], [0.0, -1.0]]
+    d2 = innovation_nis(nu, S)
+    assert np.isinf(d2[3:6]).all() and np.isfinite(np.delete(d2, [3, 4, 5])).all()
