@@ -189,7 +189,7 @@ class MapSettings:
     loop_max_turn_rad: float = 0.8       # its pose's rotation this near the filter's (and not the half-turn)
     loop_trials: int = 2                 # candidate poses checked against the map (the most rectangle-like first)
     loop_min_old: int = 4                # natural features from before the target was lost matched at its pose,
-    loop_window_px: float = 8.0          # and half of those in view, each this near where it puts them
+    loop_window_px: float = 8.0          # and half of those in view, each this near its projection (the median a third)
     # -- start-up from the known target --
     target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
     known_sigma_px: float = 0.25         # a target corner's measurement, px (its sides: 0.04-0.26 px off)
