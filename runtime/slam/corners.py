@@ -8,6 +8,9 @@ import numpy as np
 
 from .search import TEMPLATE_SIZE, extract_template
 
+#: Images at least this wide are searched for corners at half resolution (find_new_corners).
+HALF_RESOLUTION_FROM_WIDTH = 320
+
 
 def grey(image: np.ndarray) -> np.ndarray:
     """(H, W) float32 grey image from grey or RGB uint8."""
@@ -21,9 +24,11 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     position (existing features, their predictions) and ``border`` px from the image edge,
     strongest first."""
     H, W = image_grey.shape
-    # Images 640 wide or more are searched at half resolution (a quarter of the work; a new
-    # feature's position only has to be near a corner, its template is what is tracked).
-    s = 2 if W >= 640 else 1
+    # Images 320 wide or more are searched at half resolution: at full resolution the detector
+    # takes a bare surface's grain and the sensor's noise for corners that match nowhere else
+    # (benchmarks/NOTES.md), and it is a quarter of the work. A new feature's position only has
+    # to be near a corner: its template is what is tracked.
+    s = 2 if W >= HALF_RESOLUTION_FROM_WIDTH else 1
     img = image_grey.astype(np.float32)
     if s == 2:
         img = cv2.pyrDown(img)

@@ -540,16 +540,18 @@ class _Track:
             for f in feats:             # the search counted as not made (the votes read it first)
                 f.attempts -= 1
             return False
-        for j, k in enumerate(sub.ks):
-            if res.used[j]:
+        used = res.used.tolist()
+        ks_found = sub.ks.tolist()
+        for k, u in zip(ks_found, used):
+            if u:
                 self.features[k].successes += 1
                 self.features[k].last_seen = frame
         self.last.used[fi] = res.used
         if s.drift_gain > 0 and res.used.any():
             ku = sub.ks[res.used]
             residual = z[fi][res.used] - predict_uv(self.state, ku, cam)
-            for k, r in zip(ku, residual):
-                if not self.features[k].known and np.isfinite(r).all():
+            for k, r, finite in zip(ku.tolist(), residual, np.isfinite(residual).all(axis=1).tolist()):
+                if finite and not self.features[k].known:
                     self.features[k].note_residual(r, s.drift_memory)
         st.matched = res.n_inliers
         st.rescued = int(res.rescued.sum())
@@ -558,10 +560,10 @@ class _Track:
         # distances, capped at a gate (a miss or an outlier costs the gate).
         nu = z[fi] - sub.uv
         d2 = innovation_nis(nu, S[fi])
-        for j, k in enumerate(sub.ks):
-            if res.used[j]:
+        for k, u, d in zip(ks_found, used, d2.tolist()):
+            if u:
                 h = self.features[k].nis
-                h.append(float(d2[j]))
+                h.append(d)
                 if len(h) > s.consistency_window:
                     del h[0]
         gate = s.ambiguity_gate_chi2
@@ -806,14 +808,17 @@ class _Track:
         inv = np.flatnonzero(kinds == INVERSE_DEPTH)
         behind = set(inv[state.x[state.starts[inv] + 5] < 0].tolist())   # rho < 0
         bad = []
+        min_attempts, ratio, young = s.delete_min_attempts, s.delete_ratio, s.delete_young_attempts
+        window, nis_limit = s.consistency_window, self.slam.nis_limit
         for k, f in enumerate(self.features):
             if f.known:
                 continue
-            if f.attempts >= s.delete_min_attempts and f.successes < s.delete_ratio * f.attempts:
+            a, n = f.attempts, f.successes
+            if a >= min_attempts and n < ratio * a:
                 bad.append(k)
-            elif f.attempts >= s.delete_young_attempts and f.successes <= f.attempts // 4:
+            elif a >= young and n <= a // 4:
                 bad.append(k)
-            elif len(f.nis) >= s.consistency_window and sum(f.nis) > self.slam.nis_limit:
+            elif len(f.nis) >= window and sum(f.nis) > nis_limit:
                 # Its innovations over the window fail the chi-square test: not a fixed point
                 # (a T-junction of a near edge and a far background, a reflection).
                 bad.append(k)

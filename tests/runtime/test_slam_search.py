@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import slam_testing as st
-from runtime.slam.corners import find_new_corners, grey, new_features
+from runtime.slam.corners import HALF_RESOLUTION_FROM_WIDTH, find_new_corners, grey, new_features
 from runtime.slam.search import extract_template, search
 from runtime.slam.templates import MapFeature, first_view_patch, local_plane_normal, patch_half, warped_template
 
@@ -190,7 +190,8 @@ def test_a_feature_without_a_patch_or_plane_keeps_its_template():
     assert warped_template(f, np.r_[0, 0, 0, 1.0, 0, 0, 0], np.array([0, 0, 1.0]), CAM) is t
 
 
-@pytest.mark.parametrize("size, border, min_distance", [((240, 320), 10, 15.0), ((240, 320), 3, 15.0),
+@pytest.mark.parametrize("size, border, min_distance", [((120, 160), 8, 8.0), ((120, 160), 3, 8.0),
+                                                        ((240, 320), 10, 15.0), ((240, 320), 3, 15.0),
                                                         ((480, 640), 20, 30.0), ((480, 640), 11, 30.0)])
 def test_new_corners_searched_inside_the_border_are_those_of_the_whole_image(size, border, min_distance):
     """The detector runs on the border's inside and a frame around it: the corners, their order
@@ -198,7 +199,7 @@ def test_new_corners_searched_inside_the_border_are_those_of_the_whole_image(siz
     img = textured(3, size)
     occ = np.random.default_rng(4).uniform([0, 0], [size[1], size[0]], size=(25, 2))
     got = find_new_corners(img, occ, 16, min_distance=min_distance, border=border)
-    s = 2 if size[1] >= 640 else 1
+    s = 2 if size[1] >= HALF_RESOLUTION_FROM_WIDTH else 1
     ref_img = cv2.pyrDown(img) if s == 2 else img
     h, w = ref_img.shape
     b = int(np.ceil(border / s))
