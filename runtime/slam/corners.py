@@ -29,7 +29,7 @@ def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, mi
     # (benchmarks/NOTES.md), and it is a quarter of the work. A new feature's position only has
     # to be near a corner: its template is what is tracked.
     s = 2 if W >= HALF_RESOLUTION_FROM_WIDTH else 1
-    img = image_grey.astype(np.float32)
+    img = np.asarray(image_grey, np.float32)
     if s == 2:
         img = cv2.pyrDown(img)
     h, w = img.shape
@@ -90,13 +90,24 @@ def min_template_std(sigma_noise: float, match_score: float) -> float:
 
 
 def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: int = TEMPLATE_SIZE,
-                 min_std: float = 2.0, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
+                 min_std: float = 2.0, prefer=None, take: int | None = None, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
     """[(uv (2,), template (size, size))] for up to n new corners whose templates have a standard
     deviation above ``min_std`` grey levels (see :func:`min_template_std`); corners too near the
-    border skipped."""
-    out = []
-    for uv in find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), size // 2 + 1), **kw):
+    border skipped. ``prefer``: a test of pixels (k, 2) -> (k,) bool; given, the first ``take``
+    of those candidates it passes, or the first ``take`` of all when it passes none (templates
+    are cut only as far as that needs)."""
+    corners = find_new_corners(image_grey, occupied_uv, n, border=max(kw.pop("border", 20), size // 2 + 1), **kw)
+    uvs = np.round(corners)
+    preferred_mask = prefer(uvs) if prefer is not None and len(uvs) else None
+    out, preferred = [], []
+    for i, uv in enumerate(corners):
         t = extract_template(image_grey, uv, size)
         if t is not None and cv2.meanStdDev(t)[1][0, 0] > min_std:     # numpy's std (ddof 0), without its overhead
-            out.append((np.round(uv), t))
-    return out
+            out.append((uvs[i], t))
+            if preferred_mask is not None and preferred_mask[i]:
+                preferred.append(out[-1])
+                if len(preferred) == take:
+                    break
+    if prefer is None:
+        return out
+    return preferred if preferred else out[:take]

@@ -458,15 +458,17 @@ def add_inverse_depth_feature(state: State, uv, cam: CameraIntrinsics, rho0: flo
 
 
 def add_inverse_depth_features(state: State, uvs, cam: CameraIntrinsics, rho0: float, sigma_rho: float,
-                               R_pix) -> list[int]:
+                               R_pix, rays: tuple[np.ndarray, np.ndarray] | None = None) -> list[int]:
     """Start inverse-depth features at the pixels ``uvs`` (m, 2) (undelayed: in the state from
     now), all at once, and return their indices (pixels the lens cannot unproject are skipped).
     With each feature's ``y = g(x_v, uv)`` and Jacobians ``J_x`` (on r, q), ``J_uv``::
 
         P_yx = J_x P_pose,:       P_yiyj = J_xi P_pose J_xj^T (+ J_uv R J_uv^T + sigma_rho^2 e e^T for i = j)
+
+    ``rays``: the pixels' ``unproject_jacobian``, if the caller has it (init_from_pixels).
     """
     R = pixel_covariance(R_pix)
-    y, A, J_x, J_uv = inverse_depth.init_from_pixels(state.x[:state.cam_dim], uvs, cam, rho0)
+    y, A, J_x, J_uv = inverse_depth.init_from_pixels(state.x[:state.cam_dim], uvs, cam, rho0, rays)
     ok = np.isfinite(y).all(axis=1)
     if not ok.any():
         return []

@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from kinematics.camera import CameraIntrinsics, in_image, lens_kernel_args, unproject
+from kinematics.camera import CameraIntrinsics, in_image, lens_kernel_args, unproject, unproject_jacobian
 from kinematics.camera import project as project_points
 from kinematics.transforms import rotation_angle
 
@@ -869,14 +869,12 @@ class _Track:
         if n <= 0:
             return
         scale = cam.width / 640.0
-        candidates = new_features(g, self._occupied(), 4 * n, size=slam.template_px, min_std=slam.contrast_floor(g),
-                                  min_distance=s.min_distance_px * scale, border=max(int(20 * scale), slam.template_px))
-        if candidates:
-            stay = slam.stay_in_view(self.state.x_v, np.array([uv for uv, _ in candidates]))
-            candidates = [c for c, ok in zip(candidates, stay) if ok] or candidates
+        # Where the motion keeps them in view first, else any (MonoSLAM's placement).
+        chosen = new_features(g, self._occupied(), 4 * n, size=slam.template_px, min_std=slam.contrast_floor(g),
+                              min_distance=s.min_distance_px * scale, border=max(int(20 * scale), slam.template_px),
+                              prefer=lambda uv: slam.stay_in_view(self.state.x_v, uv), take=n)
         R0 = quat_to_rotation(self.state.q)
         ph = patch_half(slam.template_px)
-        chosen = candidates[:n]
         if s.features == "particles":
             for uv, tpl in chosen:
                 origin, d = ray_from_pixel(self.state.x_v, uv, cam)[:2]
@@ -884,12 +882,13 @@ class _Track:
                 self.rays.append((slam.new_id(), p, R0.copy(), first_view_patch(g, uv, ph)))
         elif chosen:
             uvs = np.array([uv for uv, _ in chosen], float)
-            rays = unproject(cam, uvs) @ R0.T
+            rays_cam, J_rays = unproject_jacobian(cam, uvs)     # for the states and the normals
+            rays = rays_cam @ R0.T
             ok = np.isfinite(rays).all(axis=1)
             chosen, uvs, rays = [c for c, o in zip(chosen, ok) if o], uvs[ok], rays[ok]
             try:
                 added = add_inverse_depth_features(self.state, uvs, cam, *self._depth_prior(),
-                                                   slam.cfg.sigma_pixel**2)
+                                                   slam.cfg.sigma_pixel**2, rays=(rays_cam[ok], J_rays[ok]))
             except (FeatureNotMeasurable, SlamNumericalError):
                 added = []
             if len(added) == len(chosen):
@@ -1355,4 +1354,4 @@ class MonoSLAM:
         X = x_v[:3] + (rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ quat_to_rotation(x_v[3:7]).T
         x_next, _ = f_and_dfdx(x_v, 0.6)
         uv_next = project_points(self.cam, (X - x_next[:3]) @ quat_to_rotation(x_next[3:7]))
-        return in_image(self.cam, np.nan_to_num(uv_next, nan=-1e9), margin=self.settings.margin_px)
+        return in_image(self.cam, uv_next, margin=self.settings.margin_px)      # NaN: outside

@@ -64,6 +64,22 @@ def test_new_corners_avoid_occupied_regions_and_borders():
     assert grey(np.zeros((4, 4, 3), np.uint8)).shape == (4, 4)
 
 
+def test_new_features_preferred_are_the_first_the_test_passes_else_the_first_of_all():
+    """``prefer``/``take`` (where the motion keeps a new feature in view, system._add): the
+    first ``take`` candidates the test passes, in the detector's order, or the first ``take``
+    of all when it passes none; the same as filtering the full list."""
+    img = textured(3, (240, 320))
+    occupied = np.array([[160.0, 120.0]])
+    every = new_features(img, occupied, 24)
+    right = [c for c in every if c[0][0] > 160]
+    assert len(every) > 12 and 3 < len(right) < len(every)
+    got = new_features(img, occupied, 24, prefer=lambda uv: uv[:, 0] > 160, take=3)
+    assert [c[0].tolist() for c in got] == [c[0].tolist() for c in right[:3]]
+    assert all(np.array_equal(g[1], r[1]) for g, r in zip(got, right))
+    none = new_features(img, occupied, 24, prefer=lambda uv: np.zeros(len(uv), bool), take=4)
+    assert [c[0].tolist() for c in none] == [c[0].tolist() for c in every[:4]]
+
+
 def test_new_corners_take_predictions_far_outside_the_image():
     # A feature near the camera's plane predicts pixels like 1e12 (no integer holds them); the
     # disc near the image is still honoured and the far ones change nothing.

@@ -201,17 +201,20 @@ def init_from_pixel(x_v, uv, cam: CameraIntrinsics, rho0: float
     return y[0], A, J_x[0], J_uv[0]
 
 
-def init_from_pixels(x_v, uvs, cam: CameraIntrinsics, rho0: float
+def init_from_pixels(x_v, uvs, cam: CameraIntrinsics, rho0: float,
+                     rays: tuple[np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`init_from_pixel` for the pixels ``uvs`` (m, 2) seen from one camera, the lens
     inverted once for all: y (m, 6), the anchor (3, 3) they share, dy/dx_v (m, 6, len(x_v)) and
-    dy/duv (m, 6, 2). A pixel the lens cannot unproject gives NaN rows."""
+    dy/duv (m, 6, 2). A pixel the lens cannot unproject gives NaN rows. ``rays``: the pixels'
+    ``unproject_jacobian`` (rays (m, 3), J (m, 3, 2)), if the caller has it."""
     x_v = np.asarray(x_v, float)
     q = x_v[Q_SLICE]
     A = quat_to_rotation(q)
     uvs = np.asarray(uvs, float).reshape(-1, 2)
     m = len(uvs)
-    rays, J_rays = unproject_jacobian(cam, uvs)      # (m, 3), (m, 3, 2): the rays, z > 0
+    # (m, 3), (m, 3, 2): the rays (z > 0) and their Jacobians, unless the caller has them
+    rays, J_rays = unproject_jacobian(cam, uvs) if rays is None else rays
     dR = rotation_derivatives(q)                      # m_a(q) = A^T R(q) h_c
     AdR = np.einsum("ji,kjl->kil", A, dR)             # (4, 3, 3): A^T dR_k
     y = np.empty((m, 6))
