@@ -3,6 +3,8 @@ feature yet, each stored with its appearance template (15 x 15 at 640 x 480)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -90,7 +92,8 @@ def min_template_std(sigma_noise: float, match_score: float) -> float:
 
 
 def new_features(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, size: int = TEMPLATE_SIZE,
-                 min_std: float = 2.0, prefer=None, take: int | None = None, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
+                 min_std: float = 2.0, prefer: Callable[[np.ndarray], np.ndarray] | None = None,
+                 take: int | None = None, **kw) -> list[tuple[np.ndarray, np.ndarray]]:
     """[(uv (2,), template (size, size))] for up to n new corners whose templates have a standard
     deviation above ``min_std`` grey levels (see :func:`min_template_std`); corners too near the
     border skipped. ``prefer``: a test of pixels (k, 2) -> (k,) bool; given, the first ``take``
