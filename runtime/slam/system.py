@@ -169,17 +169,31 @@ class FrameStats:
     skipped: str = ""
 
 
-def _from_first_view(Y: np.ndarray, r: np.ndarray, r0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How far each point Y (N, 3) is seen from its first view, the camera now at r (3,) and
-    then at r0 (N, 3): the cosine of the angle between the two viewing rays (N,) and the ratio
-    of the ranges, now over then (N,)."""
-    a, b = Y - r, Y - r0
-    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
-    cos = np.clip(np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12), -1.0, 1.0)
-    return cos, na / np.maximum(nb, 1e-9)
-
-
 @compiled_kernel()
+def _first_view_kernel(Y, r, r0, k):
+    """How far point ``Y[k]`` is seen from its first view, the camera now at r (3,) and then at
+    ``r0[k]``: the cosine of the angle between the two viewing rays and the ratio of the ranges,
+    now over then."""
+    a0, a1, a2 = Y[k, 0] - r[0], Y[k, 1] - r[1], Y[k, 2] - r[2]
+    b0, b1, b2 = Y[k, 0] - r0[k, 0], Y[k, 1] - r0[k, 1], Y[k, 2] - r0[k, 2]
+    na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    nb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+    cos = min(max((a0 * b0 + a1 * b1 + a2 * b2) / max(na * nb, 1e-12), -1.0), 1.0)
+    return cos, na / max(nb, 1e-9)
+
+
+@compiled_kernel(_first_view_kernel)
+def _from_first_view(Y, r, r0):
+    """:func:`_first_view_kernel` for every point Y (N, 3), first seen from r0 (N, 3): cosines
+    (N,) and range ratios (N,)."""
+    N = Y.shape[0]
+    cos, ratio = np.empty(N), np.empty(N)
+    for k in range(N):
+        cos[k], ratio[k] = _first_view_kernel(Y, r, r0, k)
+    return cos, ratio
+
+
+@compiled_kernel(_first_view_kernel)
 def _views_kernel(uv, valid, Y, r, r0s, known, width, height, margin, cos_lim, cos_lim_known, rmax, rmax_known,
                   angle_unit_deg, log_scale_unit, known_scale):
     """:meth:`_Track._views` for the features predicted at ``uv`` (N, 2) (``valid``) inside the
@@ -193,12 +207,7 @@ def _views_kernel(uv, valid, Y, r, r0s, known, width, height, margin, cos_lim, c
         u, v = uv[k, 0], uv[k, 1]
         if not (valid[k] and u >= lo and u <= width - 0.5 - margin and v >= lo and v <= height - 0.5 - margin):
             continue
-        a0, a1, a2 = Y[k, 0] - r[0], Y[k, 1] - r[1], Y[k, 2] - r[2]
-        b0, b1, b2 = Y[k, 0] - r0s[k, 0], Y[k, 1] - r0s[k, 1], Y[k, 2] - r0s[k, 2]
-        na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-        nb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
-        cos = min(max((a0 * b0 + a1 * b1 + a2 * b2) / max(na * nb, 1e-12), -1.0), 1.0)
-        ratio = na / max(nb, 1e-9)
+        cos, ratio = _first_view_kernel(Y, r, r0s, k)
         cl, rm = (cos_lim_known, rmax_known) if known[k] else (cos_lim, rmax)
         ok[k] = cos >= cl and ratio >= 1.0 / rm and ratio <= rm
         if known[k]:
@@ -651,7 +660,7 @@ class _Track:
         # Found where the filter's own uncertainty allows (the templates missed for blur or
         # shading, not for drift): nothing to correct.
         nu = quad - uv_pred
-        d2 = float(np.einsum("ni,nij,nj->", nu, np.linalg.inv(self.last.S[rows]), nu))
+        d2 = float(innovation_nis(nu, self.last.S[rows]).sum())
         if d2 < s.reacquire_chi2:
             return
         try:
@@ -714,7 +723,7 @@ class _Track:
         for seen in found[:s.loop_trials]:
             if S is not None:
                 nu = seen.uv - pred.uv
-                if float(np.einsum("ni,nij,nj->", nu, np.linalg.inv(S), nu)) < s.reacquire_chi2:
+                if float(innovation_nis(nu, S).sum()) < s.reacquire_chi2:
                     return False    # where the filter expects it: the active search will take it
             if not ask_map or self._old_map_agrees(g, seen.R_world_cam, seen.r, old):
                 break
@@ -934,7 +943,8 @@ class _Track:
         js, ks = np.array(cand).T
         r = self.state.r
         Y = self.world_points()
-        angle = np.degrees(np.arccos(_from_first_view(Y[ks], r, np.array([feats[k].r0 for k in ks]))[0]))
+        r0s = np.array([feats[k].r0 for k in ks], float).reshape(-1, 3)
+        angle = np.degrees(np.arccos(_from_first_view(np.ascontiguousarray(Y[ks]), np.asarray(r, float), r0s)[0]))
         gain = angle - np.array([feats[k].normal_view_deg for k in ks])
         due = [i for i in np.argsort(-gain, kind="stable")[:s.normals_per_frame] if gain[i] >= s.normal_step_deg]
         if not due:
