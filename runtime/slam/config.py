@@ -130,7 +130,8 @@ class MapSettings:
     rho0: float = 1.0                    # initial inverse depth, 1/m, until the map has depths
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
     scene_depth_prior: bool = True       # rho0: the median of the frame's matches (inverse_depth.scene_prior)
-    linearity_threshold: float = 0.1     # convert to a point below this linearity index
+    linearity_threshold: float = 0.02    # convert to a point below this linearity index (Civera et al.: 0.1),
+    linearity_threshold_narrow: float = 0.1  # or this one below NARROW_WIDTH_PX, where speed decides (NOTES)
     # -- a natural feature's persistent residual (MapFeature.drift) --
     drift_memory: float = 0.1            # the newest residual's weight in its exponential mean
     drift_gain: float = 4.0              # variance x (1 + gain |drift|^2 / sigma_pixel^2); 0: off

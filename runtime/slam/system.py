@@ -72,6 +72,11 @@ __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "Sl
 #: Grid over the image for spreading the measured features (columns, rows).
 _GRID = (4, 3)
 
+#: Images narrower than this convert inverse-depth features at ``linearity_threshold_narrow``:
+#: keeping them in inverse depth longer halves the walks' drift from 480 px wide, but at 320 it
+#: gains nothing measurable and its larger state costs 13% of the frame rate (benchmarks/NOTES.md).
+NARROW_WIDTH_PX = 480
+
 
 def cap_victims(excess: int, last_seen: np.ndarray, in_view: np.ndarray, is_point: np.ndarray) -> np.ndarray:
     """The ``excess`` candidates (indices into the (m,) arrays) that leave a map over its size
@@ -795,7 +800,7 @@ class _Track:
         :meth:`_delete` to apply: none if any conversion is not finite."""
         state = self.state
         _, L = self._points_and_linearity()
-        ks = np.flatnonzero(L < self.slam.settings.linearity_threshold).tolist()
+        ks = np.flatnonzero(L < self.slam.linearity_threshold).tolist()
         ys, Js = point_conversions(state, ks) if ks else ([], [])
         if not all(np.isfinite(y).all() and np.isfinite(J).all() for y, J in zip(ys, Js)):
             ks, ys, Js = [], [], []
@@ -1086,6 +1091,8 @@ class MonoSLAM:
         self.imu = ImuStream(settings)
         self.messages: list[str] = []      # what the console should say (IMU problems, ...)
         self.nis_limit = float(chi2.ppf(settings.consistency_confidence, 2 * settings.consistency_window))
+        self.linearity_threshold = (settings.linearity_threshold if camera.width >= NARROW_WIDTH_PX
+                                    else settings.linearity_threshold_narrow)
         self.refined_target: RefinedTarget | None = None
         self.target_contrast = 0.0              # the target's print contrast in the first image
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave

@@ -12,7 +12,7 @@ from runtime.sequence import Target
 from runtime.slam.config import DEFAULT_CONFIG, MapSettings
 from runtime.slam.features import INVERSE_DEPTH, POINT
 from runtime.slam.filter import convert_to_point
-from runtime.slam.system import FrameStats, MonoSLAM, cap_victims
+from runtime.slam.system import NARROW_WIDTH_PX, FrameStats, MonoSLAM, cap_victims
 
 CAM = st.PINHOLE
 RECT = st.rectangle(0.21, 0.15)
@@ -64,3 +64,32 @@ def test_a_full_map_drops_unsettled_features_out_of_view_first():
     left = {f.id for f in track.features if not f.known}
     assert left == {ids[k] for k in natural} - {ids[natural[2]], ids[natural[3]]}
     assert state.n_features == len(track.features)
+
+
+def test_inverse_depth_features_convert_below_the_threshold_for_the_image_width():
+    """The linearity threshold follows the image's width (MapSettings.linearity_threshold from
+    NARROW_WIDTH_PX wide, linearity_threshold_narrow below), and the tracker's conversion step
+    takes exactly the inverse-depth features whose linearity index is below the one in force."""
+    settings = MapSettings(use_imu=False, linearity_threshold=0.3, linearity_threshold_narrow=0.7)
+    for width in (640, NARROW_WIDTH_PX, NARROW_WIDTH_PX - 2, 320):
+        s = width / CAM.width
+        cam = replace(CAM, width=width, height=int(CAM.height * s), fx=CAM.fx * s, fy=CAM.fy * s,
+                      cx=CAM.cx * s, cy=CAM.cy * s)
+        assert MonoSLAM(cam, DEFAULT_CONFIG, settings).linearity_threshold == (0.3 if width >= NARROW_WIDTH_PX else 0.7)
+
+    r0 = np.array([0.05, -0.55, 0.25])
+    R0 = st.look_at(r0, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    img = st.render_target_scene(CAM, R0, r0, RECT, card_margin=0.03, background=st.texture(1))
+    slam = MonoSLAM(CAM, DEFAULT_CONFIG, MapSettings(use_imu=False), imu=False)
+    slam.start(img, 0.0, Target(RECT, st.pixels(CAM, R0, r0, RECT)))
+    for i in (1, 2, 3):
+        slam.process(img, i / 30)
+    track = slam.track
+    _, L = track._points_and_linearity()
+    natural = [k for k, f in enumerate(track.features) if not f.known and slam.state.kinds[k] == INVERSE_DEPTH]
+    assert len(natural) >= 8
+    assert not track._conversions(FrameStats(frame=4, t=4 / 30))[0]       # still far from linear
+    slam.linearity_threshold = float(np.median(L[natural]))
+    ks = track._conversions(FrameStats(frame=4, t=4 / 30))[0]
+    assert set(ks) == {k for k in natural if L[k] < slam.linearity_threshold}
+    assert 0 < len(ks) < len(natural)
