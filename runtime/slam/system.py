@@ -1276,7 +1276,16 @@ class MonoSLAM:
         lost and re-localises against the map at every frame until it is found, then continues
         in the map's world frame."""
         state = saved.state_with_camera(self.cam_dim, self.cfg)
-        feats = [replace(f, attempts=0, successes=0, rays0=None) for f in saved.features]
+        # Made before this session's frame 0: the target's re-acquisition keeps them as the map
+        # from before a loss, and the cap's order sees them as seen longest ago.
+        feats = [replace(f, attempts=0, successes=0, rays0=None, first_frame=0, last_seen=0) for f in saved.features]
+        # The map's known points are the target it was started from: placed by the print's sides,
+        # watched for and sought again as after a start from the target (no pixels: no clicks).
+        known = sorted((f.id, k) for k, f in enumerate(feats) if f.known)
+        self.refined_target = None
+        if len(known) == 4:
+            xyz = np.array([state.feature(k)[:3] for _, k in known])
+            self.refined_target = RefinedTarget(xyz, np.full((4, 2), np.nan), np.zeros(4))
         self._tracks = [_Track(self, state, feats, localised=False)]
         self._next_id = max((f.id for f in feats), default=-1) + 1
         self.frame = 0

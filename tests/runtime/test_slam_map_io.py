@@ -120,7 +120,14 @@ def test_a_loaded_map_makes_a_state_and_a_session_that_starts_lost(slam, tmp_pat
     assert session.lost and not session.localised and np.isnan(session.T_world_cam()).all()
     assert [f.id for f in session.features] == [f.id for f in saved.features]
     assert all(f.attempts == 0 and f.successes == 0 for f in session.features)
+    assert all(f.first_frame == 0 and f.last_seen == 0 for f in session.features)
     assert session.new_id() == max(f.id for f in saved.features) + 1
+    # The map's four known points are the session's target, in id order, as the mapping
+    # session's refined target had them.
+    assert session.refined_target is not None
+    np.testing.assert_allclose(session.refined_target.xyz, slam.refined_target.xyz, atol=1e-3)
+    known = sorted((f.id, k) for k, f in enumerate(saved.features) if f.known)
+    np.testing.assert_array_equal(session.refined_target.xyz, [s.feature(k)[:3] for _, k in known])
 
 
 def write_npz(path, arrays: dict) -> None:
