@@ -438,6 +438,11 @@ class _Track:
         most 20 m)."""
         return self._points_and_linearity()[0]
 
+    def known_in_id_order(self) -> np.ndarray:
+        """The target's points' map indices, in the order of their ids (the target's corners')."""
+        return np.array(sorted((k for k, f in enumerate(self.features) if f.known), key=lambda k: self.features[k].id),
+                        np.intp)
+
     def _points_and_linearity(self) -> tuple[np.ndarray, np.ndarray]:
         st = self.state
         return inverse_depth.points_and_linearity_kernel(st.x, st.P, st.kinds, st.starts, st.anchors, st.r, 0.05)
@@ -707,7 +712,7 @@ class _Track:
         s, target, cam = slam.settings, slam.refined_target, slam.cam
         if target is None or len(target.xyz) != 4:
             return False
-        known = np.array(sorted((k for k, f in enumerate(self.features) if f.known), key=lambda k: self.features[k].id))
+        known = self.known_in_id_order()
         if len(known) != 4:
             return False
         found = locate_target(g, cam, target.xyz, quat_to_rotation(self.state.x[Q_SLICE]), s.loop_max_turn_rad,
@@ -1279,14 +1284,14 @@ class MonoSLAM:
         # Made before this session's frame 0: the target's re-acquisition keeps them as the map
         # from before a loss, and the cap's order sees them as seen longest ago.
         feats = [replace(f, attempts=0, successes=0, rays0=None, first_frame=0, last_seen=0) for f in saved.features]
+        self._tracks = [_Track(self, state, feats, localised=False)]
         # The map's known points are the target it was started from: placed by the print's sides,
         # watched for and sought again as after a start from the target (no pixels: no clicks).
-        known = sorted((f.id, k) for k, f in enumerate(feats) if f.known)
+        known = self._tracks[0].known_in_id_order()
         self.refined_target = None
         if len(known) == 4:
-            xyz = np.array([state.feature(k)[:3] for _, k in known])
+            xyz = np.array([state.feature(k)[:3] for k in known])
             self.refined_target = RefinedTarget(xyz, np.full((4, 2), np.nan), np.zeros(4))
-        self._tracks = [_Track(self, state, feats, localised=False)]
         self._next_id = max((f.id for f in feats), default=-1) + 1
         self.frame = 0
         self.t_prev = t
