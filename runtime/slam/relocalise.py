@@ -3,6 +3,13 @@ the whole image, and a camera pose is fitted to the 2D-3D matches by PnP inside 
 (OpenCV), as Williams, Klein and Reid's relocaliser does for MonoSLAM, with the target's
 corners and the most reliable natural features as candidates.
 
+PnP-RANSAC's inliers are few (a map made from a still camera holds points whose depth is known to
+a few per cent, some pixels off from a new view, beyond its 2 px gate), and a minimal set's pose
+can be several centimetres and degrees off. So, given the points' covariances, the pose is then
+refined over every feature's match (:func:`refine_pose`): each weighted by its pixel noise and
+its point's uncertainty projected into the image, gated by the Mahalanobis distance that also
+counts the pose's own uncertainty, until the set of matches no longer changes.
+
 The filter is then restarted at that pose: the camera block's mean is replaced, its velocity
 set to zero, and its covariance reset to ``P_cam`` with no correlation to the map (the map's own
 covariance is kept).
@@ -15,10 +22,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, undistort
+from kinematics.camera import CameraIntrinsics, project_jacobian, undistort
+from kinematics.transforms import skew, so3_exp
 
 
 FLAT_VARIANCE = 4.0      # grey levels^2: windows flatter than a 2-level standard deviation
+CHI2_2DOF_99 = 9.21      # a match's gate in refine_pose: chi-square, 2 dof, 99%
 
 
 @dataclass(frozen=True)
@@ -28,6 +37,91 @@ class Relocalisation:
     R_world_cam: np.ndarray
     r: np.ndarray
     inliers: np.ndarray
+
+
+@dataclass(frozen=True)
+class RefinedPose:
+    """R_world_cam : (3, 3), r : (3,) m; cov : (6, 6) of (small rotation in the camera frame,
+    rad; position, m); used : (k,) the features whose matches it was fitted to, uv : (k, 2) px
+    their matches."""
+
+    R_world_cam: np.ndarray
+    r: np.ndarray
+    cov: np.ndarray
+    used: np.ndarray
+    uv: np.ndarray
+
+
+def pose_jacobians(cam: CameraIntrinsics, Y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels of world points ``Y`` (n, 3) from the camera at (R_world_cam, r), and their
+    Jacobians: (n, 2) uv px, (n, 2, 6) d(uv)/d(theta, r) with R = R_world_cam Exp(theta),
+    (n, 2, 3) d(uv)/dY."""
+    P_cam = (Y - r) @ R_world_cam
+    uv, J_c = project_jacobian(cam, P_cam)
+    J_y = J_c @ R_world_cam.T
+    J_pose = np.concatenate([J_c @ skew(P_cam), -J_y], axis=2)
+    return uv, J_pose, J_y
+
+
+def refine_pose(cam: CameraIntrinsics, Y: np.ndarray, Y_cov: np.ndarray, uv: np.ndarray, owner: np.ndarray,
+                R_world_cam: np.ndarray, r: np.ndarray, sigma_px: float, start: np.ndarray,
+                gate: float = CHI2_2DOF_99, rounds: int = 6, steps: int = 10) -> RefinedPose | None:
+    """The camera pose by weighted least squares over whole-image matches, from a first pose.
+
+    Y : (m, 3) world points, m, and Y_cov (m, 3, 3) their covariances; uv : (j, 2) px candidate
+    matches, owner (j,) the point each is of (several per point allowed); start : the points
+    the first pose was fitted to (each takes its match nearest that pose). Each point's residual
+    is weighted by ``sigma_px^2 I + J_y Y_cov J_y^T``; a round fits the pose to the chosen
+    matches by Gauss-Newton, then chooses again, for every point, its match nearest in
+    Mahalanobis distance with the pose's covariance added, within ``gate``; it stops when the
+    choice repeats. Correlations between the points are ignored. Returns None when fewer than 4
+    points hold or the fit fails.
+    """
+    points = np.unique(owner)
+    ks = np.unique(start)
+    obs = np.array([_nearest(cam, uv[owner == k], Y[k], R_world_cam, r) for k in ks]).reshape(-1, 2)
+    for _ in range(rounds):
+        if len(ks) < 4:
+            return None
+        for _ in range(steps):
+            pred, J, J_y = pose_jacobians(cam, Y[ks], R_world_cam, r)
+            if not np.isfinite(pred).all():
+                return None
+            W = np.linalg.inv(sigma_px**2 * np.eye(2) + J_y @ Y_cov[ks] @ np.swapaxes(J_y, 1, 2))
+            JtW = np.swapaxes(J, 1, 2) @ W
+            H = np.einsum("nij,njk->ik", JtW, J)
+            try:
+                d = np.linalg.solve(H, np.einsum("nij,nj->i", JtW, obs - pred))
+            except np.linalg.LinAlgError:
+                return None
+            R_world_cam, r = R_world_cam @ so3_exp(d[:3]), r + d[3:]
+            if np.abs(d).max() < 1e-9:
+                break
+        cov = np.linalg.inv(H)
+        pred, J, J_y = pose_jacobians(cam, Y[points], R_world_cam, r)
+        S_inv = np.linalg.inv(sigma_px**2 * np.eye(2) + J_y @ Y_cov[points] @ np.swapaxes(J_y, 1, 2)
+                              + J @ cov @ np.swapaxes(J, 1, 2))
+        chosen_k, chosen_uv = [], []
+        for i, k in enumerate(points):
+            e = uv[owner == k] - pred[i]
+            d2 = np.einsum("ni,ij,nj->n", e, S_inv[i], e)
+            if np.isfinite(d2).any() and np.nanmin(d2) < gate:
+                chosen_k.append(k)
+                chosen_uv.append(uv[owner == k][int(np.nanargmin(d2))])
+        chosen_k, chosen_uv = np.array(chosen_k, np.intp), np.array(chosen_uv).reshape(-1, 2)
+        if np.array_equal(chosen_k, ks) and np.array_equal(chosen_uv, obs):
+            break
+        fitted = RefinedPose(R_world_cam, r, cov, ks, obs)
+        ks, obs = chosen_k, chosen_uv
+    else:
+        return fitted          # the choice still changing: the last fit
+    return RefinedPose(R_world_cam, r, cov, ks, obs)
+
+
+def _nearest(cam: CameraIntrinsics, c: np.ndarray, y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray) -> np.ndarray:
+    p = pose_jacobians(cam, y[None], R_world_cam, r)[0][0]
+    return c[int(np.argmin(np.linalg.norm(c - p, axis=1)))]
 
 
 def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: float = 0.2, per_template: int = 4
@@ -65,13 +159,14 @@ def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: fl
 
 
 def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, cam: CameraIntrinsics,
-               max_score: float = 0.2, reprojection_px: float = 2.0, min_inliers: int = 4
-               ) -> Relocalisation | None:
+               max_score: float = 0.2, reprojection_px: float = 2.0, min_inliers: int = 4,
+               Y_cov: np.ndarray | None = None, sigma_px: float = 1.0) -> Relocalisation | None:
     """A camera pose from whole-image matches of mapped features, or None.
 
     templates : the features' 15 x 15 templates; Y : (m, 3) their world positions, m.
     A pose needs at least ``min_inliers`` matches within ``reprojection_px`` of their
-    reprojection.
+    reprojection. With ``Y_cov`` (m, 3, 3), the points' covariances, the pose is then refined
+    over every point's matches (:func:`refine_pose`, pixel noise ``sigma_px``).
     """
     uv, owner = global_matches(image, templates, max_score)
     xy = undistort(cam, uv) if len(uv) else uv
@@ -119,4 +214,10 @@ def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, ca
     if np.any(Pc[:, 2] <= 0) or err.max() > 2 * reprojection_px:
         return None
     R_world_cam = R_cam_world.T
-    return Relocalisation(R_world_cam, -R_world_cam @ tvec.ravel(), owner[inl])
+    found = Relocalisation(R_world_cam, -R_world_cam @ tvec.ravel(), owner[inl])
+    if Y_cov is None:
+        return found
+    ref = refine_pose(cam, Y, Y_cov, uv, owner, found.R_world_cam, found.r, sigma_px, found.inliers)
+    if ref is None or len(ref.used) < len(found.inliers):
+        return found
+    return Relocalisation(ref.R_world_cam, ref.r, ref.used)

@@ -438,6 +438,23 @@ class _Track:
         most 20 m)."""
         return self._points_and_linearity()[0]
 
+    def point_covariances(self, ks: np.ndarray) -> np.ndarray:
+        """(len(ks), 3, 3) features' point covariances, world, m^2 (an inverse-depth feature's
+        through its conversion, at an inverse depth of at least 0.05 /m, as world_points)."""
+        st = self.state
+        cov = np.empty((len(ks), 3, 3))
+        for i, k in enumerate(ks):
+            sl = st.feature_slice(k)
+            P = st.P[sl, sl]
+            if st.kinds[k] == INVERSE_DEPTH:
+                y = st.feature(k).copy()
+                y[5] = max(y[5], 0.05)
+                _, J = inverse_depth.to_point(y, st.anchors[k])
+                cov[i] = J @ P @ J.T
+            else:
+                cov[i] = P
+        return cov
+
     def known_in_id_order(self) -> np.ndarray:
         """The target's points' map indices, in the order of their ids (the target's corners')."""
         return np.array(sorted((k for k, f in enumerate(self.features) if f.known), key=lambda k: self.features[k].id),
@@ -1057,7 +1074,8 @@ class _Track:
                                                  -self.features[k].successes))
         ks = np.array(rank[:s.reloc_candidates])
         found = relocalise(g, [self.features[k].template for k in ks], self.world_points()[ks], self.slam.cam,
-                           s.match_score, min_inliers=s.reloc_min_inliers)
+                           s.match_score, min_inliers=s.reloc_min_inliers, Y_cov=self.point_covariances(ks),
+                           sigma_px=self.slam.cfg.sigma_pixel)
         if found is None:
             return False
         hyp = PoseHypothesis(found.R_world_cam, found.r,
@@ -1166,7 +1184,7 @@ class MonoSLAM:
         st = tr.state
         Y = tr.world_points()
         n = st.n_features
-        cov = np.empty((n, 3, 3))
+        cov = tr.point_covariances(np.arange(n))
         r_ids, r_o, r_d, r_depth = [], [], [], []
         for k in range(n):
             sl = st.feature_slice(k)
@@ -1174,8 +1192,6 @@ class MonoSLAM:
             if st.kinds[k] == INVERSE_DEPTH:
                 y = st.feature(k).copy()
                 y[5] = max(y[5], 0.05)
-                _, J = inverse_depth.to_point(y, st.anchors[k])
-                cov[k] = J @ P @ J.T
                 m = st.anchors[k] @ inverse_depth.direction_kernel(float(y[3]), float(y[4]))[0]
                 s_rho = math.sqrt(max(P[5, 5], 0.0))
                 rho_hi, rho_lo = y[5] + 2 * s_rho, y[5] - 2 * s_rho
@@ -1183,8 +1199,6 @@ class MonoSLAM:
                 r_o.append(y[:3].copy())
                 r_d.append(m / np.linalg.norm(m))
                 r_depth.append((1.0 / rho_hi, 1.0 / rho_lo if rho_lo > 0 else np.inf))
-            else:
-                cov[k] = P
         for fid, p, _, _ in tr.rays:
             r_ids.append(fid)
             r_o.append(p.origin.copy())
