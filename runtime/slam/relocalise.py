@@ -22,8 +22,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, project_jacobian, undistort
-from kinematics.transforms import skew, so3_exp
+from kinematics.camera import CameraIntrinsics, project, undistort
+from kinematics.transforms import so3_exp
+
+from .startup import pose_jacobians
 
 
 FLAT_VARIANCE = 4.0      # grey levels^2: windows flatter than a 2-level standard deviation
@@ -50,18 +52,6 @@ class RefinedPose:
     cov: np.ndarray
     used: np.ndarray
     uv: np.ndarray
-
-
-def pose_jacobians(cam: CameraIntrinsics, Y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixels of world points ``Y`` (n, 3) from the camera at (R_world_cam, r), and their
-    Jacobians: (n, 2) uv px, (n, 2, 6) d(uv)/d(theta, r) with R = R_world_cam Exp(theta),
-    (n, 2, 3) d(uv)/dY."""
-    P_cam = (Y - r) @ R_world_cam
-    uv, J_c = project_jacobian(cam, P_cam)
-    J_y = J_c @ R_world_cam.T
-    J_pose = np.concatenate([J_c @ skew(P_cam), -J_y], axis=2)
-    return uv, J_pose, J_y
 
 
 def refine_pose(cam: CameraIntrinsics, Y: np.ndarray, Y_cov: np.ndarray, uv: np.ndarray, owner: np.ndarray,
@@ -104,11 +94,12 @@ def refine_pose(cam: CameraIntrinsics, Y: np.ndarray, Y_cov: np.ndarray, uv: np.
                               + J @ cov @ np.swapaxes(J, 1, 2))
         chosen_k, chosen_uv = [], []
         for i, k in enumerate(points):
-            e = uv[owner == k] - pred[i]
+            c = uv[owner == k]
+            e = c - pred[i]
             d2 = np.einsum("ni,ij,nj->n", e, S_inv[i], e)
             if np.isfinite(d2).any() and np.nanmin(d2) < gate:
                 chosen_k.append(k)
-                chosen_uv.append(uv[owner == k][int(np.nanargmin(d2))])
+                chosen_uv.append(c[int(np.nanargmin(d2))])
         chosen_k, chosen_uv = np.array(chosen_k, np.intp), np.array(chosen_uv).reshape(-1, 2)
         if np.array_equal(chosen_k, ks) and np.array_equal(chosen_uv, obs):
             break
@@ -120,7 +111,7 @@ def refine_pose(cam: CameraIntrinsics, Y: np.ndarray, Y_cov: np.ndarray, uv: np.
 
 
 def _nearest(cam: CameraIntrinsics, c: np.ndarray, y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray) -> np.ndarray:
-    p = pose_jacobians(cam, y[None], R_world_cam, r)[0][0]
+    p = project(cam, ((y - r) @ R_world_cam)[None])[0]
     return c[int(np.argmin(np.linalg.norm(c - p, axis=1)))]
 
 

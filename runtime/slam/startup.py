@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.camera import CameraIntrinsics, in_image, project, undistort
-from kinematics.transforms import rotation_angle
+from kinematics.camera import CameraIntrinsics, in_image, project, project_jacobian, undistort
+from kinematics.transforms import rotation_angle, skew
 
 from ..sequence import Target
 from .quaternion import dq_dtheta_right, quat_from_rotation
@@ -376,19 +376,16 @@ def _pose_residuals(cam: CameraIntrinsics, xyz, uv, R_wc, r) -> np.ndarray:
     return (project(cam, P_cam) - uv).reshape(-1)
 
 
-def _pose_jacobian(cam: CameraIntrinsics, xyz, R_wc, r, eps: float = 1e-6) -> np.ndarray:
-    """(2n, 6) d(pixels)/d(theta, r): theta a small rotation in the camera frame
-    (R = R_wc Exp(theta)), r the world position (central differences through the lens model)."""
-    J = np.zeros((2 * len(xyz), 6))
-    for i in range(6):
-        d = np.zeros(6)
-        d[i] = eps
-        out = []
-        for s in (1, -1):
-            Rp = R_wc @ Rotation.from_rotvec(s * d[:3]).as_matrix()
-            out.append(project(cam, (xyz - (r + s * d[3:])) @ Rp).reshape(-1))
-        J[:, i] = (out[0] - out[1]) / (2 * eps)
-    return J
+def pose_jacobians(cam: CameraIntrinsics, Y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels of world points ``Y`` (n, 3) from the camera at (R_world_cam, r), and their
+    Jacobians: (n, 2) uv px, (n, 2, 6) d(uv)/d(theta, r) with theta a small rotation in the
+    camera frame (R = R_world_cam Exp(theta)) and r the world position, (n, 2, 3) d(uv)/dY."""
+    P_cam = (Y - r) @ R_world_cam
+    uv, J_c = project_jacobian(cam, P_cam)
+    J_y = J_c @ R_world_cam.T
+    J_pose = np.concatenate([J_c @ skew(P_cam), -J_y], axis=2)
+    return uv, J_pose, J_y
 
 
 def pose_hypotheses(cam: CameraIntrinsics, xyz: np.ndarray, uv: np.ndarray, sigma_px: float,
@@ -478,7 +475,7 @@ def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float
         if best is not None:
             D.append(best)
     D = np.array(D)
-    J = _pose_jacobian(cam, xyz, R_wc, r)
+    J = pose_jacobians(cam, xyz, R_wc, r)[1].reshape(-1, 6)
     linear = sigma_px**2 * np.linalg.pinv(J.T @ J)
     if len(D) < 20:
         return linear

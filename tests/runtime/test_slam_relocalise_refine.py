@@ -11,7 +11,8 @@ import slam_testing as st
 from scipy.spatial.transform import Rotation
 
 from kinematics.camera import project
-from runtime.slam.relocalise import pose_jacobians, refine_pose
+from runtime.slam.relocalise import refine_pose
+from runtime.slam.startup import pose_jacobians
 
 
 @pytest.mark.parametrize("name", sorted(st.CAMERAS))
