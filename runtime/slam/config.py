@@ -135,6 +135,7 @@ class MapSettings:
     # -- a natural feature's persistent residual (MapFeature.drift) --
     drift_memory: float = 0.1            # the newest residual's weight in its exponential mean
     drift_gain: float = 4.0              # variance x (1 + gain |drift|^2 / sigma_pixel^2); 0: off
+    aperture_noise: bool = True          # a match's noise shaped by its template's gradients (templates.match_noise_shape)
     # -- particles (the paper's factored sampling) --
     particles: int = 100
     depth_near_m: float = 0.5

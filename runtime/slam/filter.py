@@ -84,8 +84,8 @@ def gather_jacobian(i, ks, kinds, starts, dims, H_c, H_f, idx, h):
 
 
 @compiled_kernel(gather_jacobian)
-def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, R, r_scale):
-    """S_i (m, 2, 2) = H_i P_i H_i^T + r_scale_i R over the (7 + dim) state entries each touches."""
+def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, Rn):
+    """S_i (m, 2, 2) = H_i P_i H_i^T + Rn_i over the (7 + dim) state entries each touches."""
     m = ks.shape[0]
     S = np.empty((m, 2, 2))
     idx = np.empty(13, np.intp)
@@ -94,7 +94,7 @@ def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, R, r_scale):
         c = gather_jacobian(i, ks, kinds, starts, dims, H_c, H_f, idx, h)
         for a in range(2):
             for b in range(a, 2):
-                acc = r_scale[i] * R[a, b]
+                acc = Rn[i, a, b]
                 for u in range(c):
                     hu = h[a, u]
                     if hu == 0.0:
@@ -109,20 +109,34 @@ def _innovation_kernel(P, kinds, starts, dims, ks, H_c, H_f, R, r_scale):
     return S
 
 
-def _scales(r_scale, m: int) -> np.ndarray:
-    s = np.ones(m) if r_scale is None else np.ascontiguousarray(r_scale, float).reshape(m)
-    if not (np.isfinite(s).all() and (s > 0).all()):
-        raise ValueError("measurement noise scales must be finite and positive")
-    return s
+def measurement_noise(R: np.ndarray, r_scale, m: int) -> np.ndarray:
+    """(m, 2, 2) each measurement's noise covariance, px^2, from the pixel covariance ``R``
+    (2, 2) and ``r_scale``: None (``R`` each), (m,) multiples of ``R``, or (m, 2, 2) shapes
+    ``A_i`` in ``R``'s units (``L A_i L^T``, ``R = L L^T``)."""
+    if r_scale is None:
+        return np.broadcast_to(R, (m, 2, 2)).copy()
+    s = np.asarray(r_scale, float)
+    if s.shape == (m,) or s.size == m and s.ndim <= 1:
+        s = s.reshape(m)
+        if not (np.isfinite(s).all() and (s > 0).all()):
+            raise ValueError("measurement noise scales must be finite and positive")
+        return s[:, None, None] * R
+    if s.shape != (m, 2, 2) or not np.isfinite(s).all():
+        raise ValueError(f"measurement noise shapes must be (m,) or (m, 2, 2) and finite, got {s.shape} for m = {m}")
+    if m and not ((s[:, 0, 0] > 0) & (s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0] > 0)).all():
+        raise ValueError("measurement noise shapes must be positive definite")
+    L = np.linalg.cholesky(R)
+    return np.ascontiguousarray(L @ s @ L.T)
 
 
 def innovation_covariances(state: State, pred: Prediction, R_pix, r_scale=None) -> np.ndarray:
     """(m, 2, 2) px^2: each predicted feature's own innovation covariance
     ``H_i P H_i^T + r_scale_i R`` (its search ellipse); NaN for features with no image.
-    ``r_scale`` (m,) : each measurement's noise variance as a multiple of ``R_pix`` (default 1)."""
+    ``r_scale`` (m,) or (m, 2, 2) : each measurement's noise as a multiple of ``R_pix``
+    (:func:`measurement_noise`; default 1)."""
     R = pixel_covariance(R_pix)
-    S = _innovation_kernel(state.P, state.kinds, state.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f, R,
-                           _scales(r_scale, len(pred.ks)))
+    S = _innovation_kernel(state.P, state.kinds, state.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f,
+                           measurement_noise(R, r_scale, len(pred.ks)))
     if pred.H_t is not None and len(pred.ks):
         c = _h_times_kernel(np.ascontiguousarray(state.P[:, TD_INDEX:TD_INDEX + 1]), state.kinds, state.starts,
                             FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
@@ -220,7 +234,7 @@ def _lower_inverse(L):
 
 
 @compiled_kernel()
-def _batch_kernel(P, U, r, x, kinds, starts, dims, ks, H_c, H_f, u, td, R, scales, nu):
+def _batch_kernel(P, U, r, x, kinds, starts, dims, ks, H_c, H_f, u, td, Rn, nu):
     """One batch of :class:`FrameUpdate` in a single call: ``S`` (2m, 2m), ``U_new = P H^T
     L^-T`` (n, 2m) and the new mean ``x + U_new L^-1 nu``, under ``P = P0 - U U^T`` (``U``
     (n, r)); ``u`` (2m,) H's column of the clock offset at index ``td`` (empty without one).
@@ -252,7 +266,7 @@ def _batch_kernel(P, U, r, x, kinds, starts, dims, ks, H_c, H_f, u, td, R, scale
     for i in range(mm // 2):
         for a in range(2):
             for b in range(2):
-                S[2 * i + a, 2 * i + b] += scales[i] * R[a, b]
+                S[2 * i + a, 2 * i + b] += Rn[i, a, b]
     empty = np.zeros((0, 0))
     if not np.isfinite(S).all():
         return False, S, empty, x
@@ -357,8 +371,8 @@ class FrameUpdate:
         """(m, 2, 2) each feature's own ``S_i = H_i P H_i^T + r_scale_i R`` at the current
         covariance."""
         st = self.state
-        S = _innovation_kernel(st.P, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f, self.R,
-                               _scales(r_scale, len(pred.ks)))
+        S = _innovation_kernel(st.P, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f,
+                               measurement_noise(self.R, r_scale, len(pred.ks)))
         U = self._U
         if U.shape[1] and len(pred.ks):
             HU = _h_times_kernel(U, st.kinds, st.starts, FEATURE_DIMS, pred.ks, pred.H_c, pred.H_f)
@@ -375,8 +389,8 @@ class FrameUpdate:
 
     def update(self, ks, z, pred: Prediction | None = None, r_scale=None) -> UpdateResult:
         """One batch with measurements ``z`` (m, 2) px of the distinct features ``ks``
-        (``pred``: their predictions at the current mean; ``r_scale`` (m,): their noise
-        variances as multiples of ``R``). Raises :class:`FeatureNotMeasurable`
+        (``pred``: their predictions at the current mean; ``r_scale``: their noises as
+        multiples of ``R``, (m,) or (m, 2, 2), :func:`measurement_noise`). Raises :class:`FeatureNotMeasurable`
         or :class:`SlamNumericalError` and changes nothing when the batch cannot be applied."""
         st = self.state
         ks = np.asarray(ks, dtype=np.intp).reshape(-1)
@@ -398,7 +412,7 @@ class FrameUpdate:
         nu = (z - pred.uv).reshape(-1)
         try:
             ok, S, U_new, x = _batch_kernel(st.P, self._U, r, self.x, st.kinds, st.starts, FEATURE_DIMS, ks, pred.H_c,
-                                            pred.H_f, u, TD_INDEX, self.R, _scales(r_scale, m), nu)
+                                            pred.H_f, u, TD_INDEX, measurement_noise(self.R, r_scale, m), nu)
         except np.linalg.LinAlgError:
             ok = False
         if not ok:

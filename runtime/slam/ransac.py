@@ -138,8 +138,8 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
     update the state with them, in place (the three steps of the module docstring).
 
     ``pred``, ``S`` : the features' predictions and innovation covariances at the prior (the
-    ones the search used). ``r_scale`` (m,) : each measurement's noise variance as a multiple of
-    ``R_pix`` (default 1). ``votes`` (m,) : what each match's agreement counts for in choosing
+    ones the search used). ``r_scale`` (m,) or (m, 2, 2) : each measurement's noise as a multiple
+    of ``R_pix`` (filter.measurement_noise; default 1). ``votes`` (m,) : what each match's agreement counts for in choosing
     the hypothesis (default 1 each). An update refused for numerical reasons leaves the state as it was
     and its matches unused. ``accept`` : shown the frame's updates before they are written (the
     posterior mean ``x`` and variances of the FrameUpdate); False leaves the state as it was,

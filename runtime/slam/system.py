@@ -69,6 +69,10 @@ from .templates import MapFeature, first_view_patch, local_plane_normal, patch_h
 
 __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
 
+#: A feature whose match variance along its weakest direction is more than this many times that
+#: across it (a standard deviation ratio above 3) is a relocalisation candidate after the rest.
+MAX_RELOC_ELONGATION = 10.0
+
 #: Grid over the image for spreading the measured features (columns, rows).
 _GRID = (4, 3)
 
@@ -238,6 +242,7 @@ class _Track:
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
         self._first_views_key: list | None = None
+        self._shapes_key: list | None = None
         self._first_views_cache = (np.zeros((0, 3)), np.zeros(0, bool))
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
@@ -465,8 +470,9 @@ class _Track:
         return inverse_depth.points_and_linearity_kernel(st.x, st.P, st.kinds, st.starts, st.anchors, st.r, 0.05)
 
     def _select(self) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
-        """The features to measure this frame, their innovation covariances and noise scales, how
-        many are predicted visible, and their points (m, 3)."""
+        """The features to measure this frame, their innovation covariances and noise (multiples
+        of the pixel noise: (m,), or (m, 2, 2) shaped by each template's gradients with
+        ``aperture_noise``), how many are predicted visible, and their points (m, 3)."""
         s, cam = self.slam.settings, self.slam.cam
         st = self.state
         ks = np.arange(st.n_features)
@@ -481,6 +487,8 @@ class _Track:
         if s.drift_gain > 0:
             sig2 = self.slam.cfg.sigma_pixel ** 2
             r_scale = r_scale * np.array([self.features[k].drift_variance_scale(s.drift_gain, sig2) for k in sel])
+        if s.aperture_noise:
+            r_scale = r_scale[:, None, None] * self._noise_shapes(sel)
         pred = pred.take(sel)
         self.in_view_ids = {self.features[k].id for k in pred.ks}
         S = innovation_covariances(st, pred, self.slam.cfg.sigma_pixel**2, r_scale)
@@ -498,6 +506,30 @@ class _Track:
             idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
         pred = pred.take(idx)
         return pred, S[idx], r_scale[idx], visible, Y[pred.ks]
+
+    def _noise_shapes(self, ks: np.ndarray) -> np.ndarray:
+        """(m, 2, 2) features ``ks``' match noise shapes (MapFeature.noise_shape) turned from their
+        first view's image axes into this view's by the camera's roll about its optic axis since."""
+        A, R0 = self._shapes_and_first_rotations()
+        A, R0 = A[ks], R0[ks]
+        R_rel = np.einsum("ji,kjl->kil", quat_to_rotation(self.state.q), R0)   # R_world_cam^T R0
+        a = np.arctan2(R_rel[:, 1, 0] - R_rel[:, 0, 1], R_rel[:, 0, 0] + R_rel[:, 1, 1])
+        c, s_ = np.cos(a), np.sin(a)
+        rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)
+        return rot @ A @ np.swapaxes(rot, 1, 2)
+
+    def _shapes_and_first_rotations(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every feature's noise shape (N, 2, 2) and first-view rotation (N, 3, 3) (the identity
+        for the target's points and features without one), kept while the map holds the same
+        features."""
+        key = [f.id for f in self.features]
+        if getattr(self, "_shapes_key", None) != key:
+            eye = np.eye(3)
+            self._shapes_cache = (np.array([f.noise_shape for f in self.features], float).reshape(-1, 2, 2),
+                                  np.array([eye if f.known or f.R0 is None else f.R0 for f in self.features],
+                                           float).reshape(-1, 3, 3))
+            self._shapes_key = key
+        return self._shapes_cache
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
         """``n`` of the candidates ``idx``: the target's points first, then round-robin over a
@@ -1060,6 +1092,12 @@ class _Track:
         st.added += 1
 
     # ------------------------------------------------------------------ re-localisation
+    def _elongated(self, k: int) -> bool:
+        """Whether feature ``k``'s matches are uncertain along one direction beyond
+        ``MAX_RELOC_ELONGATION`` times its variance across it (an edge)."""
+        w = np.linalg.eigvalsh(self.features[k].noise_shape)
+        return bool(w[1] > MAX_RELOC_ELONGATION * w[0])
+
     def _relocalise(self, g: np.ndarray) -> bool:
         """Re-acquire the camera pose from whole-image matches of the target and the most
         reliable point features (relocalise.py); on success restart the camera block there, in
@@ -1070,8 +1108,10 @@ class _Track:
         candidates = list(range(self.state.n_features))
         if len(candidates) < s.reloc_min_inliers:
             return False
-        rank = sorted(candidates, key=lambda k: (not self.features[k].known, self.state.kinds[k] != POINT,
-                                                 -self.features[k].successes))
+        # An edge's template matches anywhere along the edge in a whole-image search: features
+        # whose matches are elongated (templates.match_noise_shape) come after the rest.
+        rank = sorted(candidates, key=lambda k: (not self.features[k].known, self._elongated(k),
+                                                 self.state.kinds[k] != POINT, -self.features[k].successes))
         ks = np.array(rank[:s.reloc_candidates])
         found = relocalise(g, [self.features[k].template for k in ks], self.world_points()[ks], self.slam.cam,
                            s.match_score, min_inliers=s.reloc_min_inliers, Y_cov=self.point_covariances(ks),

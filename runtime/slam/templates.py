@@ -18,6 +18,31 @@ from .quaternion import quat_to_rotation
 from .search import extract_template
 
 
+#: A match's noise variance along its template's weakest gradient direction is at most this
+#: many times that across its strongest: an edge's position along itself, 10 px standard
+#: deviation for a 1 px pixel noise.
+MAX_NOISE_ELONGATION = 100.0
+
+
+def match_noise_shape(template: np.ndarray, max_ratio: float = MAX_NOISE_ELONGATION) -> np.ndarray:
+    """(2, 2) the shape of a match's noise covariance in the template's image axes (u, v), as a
+    multiple of the pixel noise's variance. A match places a template only as well as its
+    gradients constrain it (the aperture problem): the Cramer-Rao bound of an SSD match is
+    ``sigma_n^2 M^-1``, ``M`` the sum of ``g g^T`` over the template (its structure tensor).
+    Scaled so that the direction of the strongest gradients keeps the pixel noise (variance 1)
+    and the weakest gets the ratio of M's eigenvalues, at most ``max_ratio``: a corner stays
+    near isotropic, an edge's match is uncertain along the edge. A flat template: ``max_ratio I``."""
+    t = np.asarray(template, float)
+    gv, gu = np.gradient(t)
+    gu, gv = gu[1:-1, 1:-1], gv[1:-1, 1:-1]
+    M = np.array([[np.sum(gu * gu), np.sum(gu * gv)], [np.sum(gu * gv), np.sum(gv * gv)]])
+    w, V = np.linalg.eigh(M)
+    if not (np.isfinite(w).all() and w[1] > 0):
+        return max_ratio * np.eye(2)
+    ratio = min(w[1] / max(w[0], w[1] / max_ratio), max_ratio)
+    return ratio * np.outer(V[:, 0], V[:, 0]) + np.outer(V[:, 1], V[:, 1])
+
+
 @dataclass
 class MapFeature:
     """What the map keeps of a feature besides its state entries.
@@ -31,7 +56,9 @@ class MapFeature:
     the normal was last fitted to the feature's looks (0: never). rays0 : (4, 3) cached world
     rays of the patch's corners.
     drift : (2,) px, the exponential mean of its residuals after each update, started by its
-    first (:meth:`note_residual`); None before any.
+    first (:meth:`note_residual`); None before any. noise_shape : (2, 2) its matches' noise
+    covariance as a multiple of the pixel noise, first-view image axes (:func:`match_noise_shape`
+    of its template; the identity for a target point, located by its sides).
     """
 
     id: int
@@ -51,6 +78,13 @@ class MapFeature:
     last_seen: int = -1
     nis: list = field(default_factory=list)   # normalised innovations of its latest inlier matches
     drift: np.ndarray | None = None
+    _noise_shape: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def noise_shape(self) -> np.ndarray:
+        if self._noise_shape is None:
+            self._noise_shape = np.eye(2) if self.known else match_noise_shape(self.template)
+        return self._noise_shape
 
     @property
     def reliability(self) -> float:

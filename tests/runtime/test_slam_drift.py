@@ -71,8 +71,9 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     assert list(pred1.ks) == list(pred0.ks)
     scale = 1.0 + slam.settings.drift_gain * 4.0 / DEFAULT_CONFIG.sigma_pixel**2
     np.testing.assert_allclose(r1_scale[j], r0_scale[j] * scale)
-    R = DEFAULT_CONFIG.sigma_pixel**2 * np.eye(2)
-    np.testing.assert_allclose(S1[j] - S0[j], (scale - 1.0) * r0_scale[j] * R, atol=1e-9)
+    # Its noise (the pixel noise times its shape, templates.match_noise_shape) grows by the scale.
+    R = DEFAULT_CONFIG.sigma_pixel**2 * r0_scale[j]
+    np.testing.assert_allclose(S1[j] - S0[j], (scale - 1.0) * R, atol=1e-9)
     others = [i for i in range(len(pred0.ks)) if i != j]
     np.testing.assert_allclose(S1[others], S0[others])
     slam.settings = replace(slam.settings, drift_gain=0.0)

@@ -414,3 +414,47 @@ def test_innovation_nis_is_the_mahalanobis_distance_and_refuses_what_is_not_a_co
     S[5] = [[-1.0, 0.0], [0.0, -1.0]]
     d2 = innovation_nis(nu, S)
     assert np.isinf(d2[3:6]).all() and np.isfinite(np.delete(d2, [3, 4, 5])).all()
+
+
+def test_update_with_shaped_noise_matches_the_dense_reference():
+    """Each match's own noise covariance ``L A_i L^T`` (an edge's match, uncertain along the
+    edge): the batch, its ellipses and the scalar multiples all equal the dense textbook update
+    with that block-diagonal R."""
+    cam = CAMERAS["pinhole"]
+    rng = np.random.default_rng(41)
+    s = mixed_state(rng, CAMERA_DIM, n_points=4, n_inverse=4, cam=cam)
+    ks = np.array([2, 5, 0, 6])
+    z = true_matches(s, ks, cam, rng, 2.0)
+    A = np.empty((len(ks), 2, 2))
+    for i, (ratio, angle) in enumerate([(1.0, 0.0), (40.0, 0.3), (100.0, -1.2), (3.0, 2.0)]):
+        v = np.array([np.cos(angle), np.sin(angle)])
+        A[i] = ratio * np.outer(v, v) + np.outer([-v[1], v[0]], [-v[1], v[0]])
+    L = np.linalg.cholesky(R_PIX)
+    R = np.zeros((2 * len(ks), 2 * len(ks)))
+    for i in range(len(ks)):
+        R[2 * i:2 * i + 2, 2 * i:2 * i + 2] = L @ A[i] @ L.T
+    h, H = dense_H(s, ks, cam)
+    K, S_ref, P_ref = joseph_update(s.P, H, R)
+    x_ref, P_ref = normalise(s.x + K @ (z.reshape(-1) - h), P_ref)
+    S_each = innovation_covariances(s, predict(s, ks, cam), R_PIX, A)
+    scalar = innovation_covariances(s, predict(s, ks, cam), R_PIX, np.full(len(ks), 3.0))
+    plain = innovation_covariances(s, predict(s, ks, cam), R_PIX)
+    for i in range(len(ks)):
+        st.assert_close(S_each[i], S_ref[2 * i:2 * i + 2, 2 * i:2 * i + 2], 1e-10)
+        st.assert_close(scalar[i] - plain[i], 2.0 * R_PIX, 1e-10)
+    res = update(s, ks, z, cam, R_PIX, r_scale=A)
+    st.assert_close(res.S, S_ref, 1e-10)
+    st.assert_close(s.x, x_ref, 1e-12)
+    st.assert_close(s.P, P_ref, 1e-9)
+
+
+def test_shaped_noise_that_is_not_a_covariance_is_refused():
+    cam = CAMERAS["pinhole"]
+    rng = np.random.default_rng(42)
+    s = mixed_state(rng, CAMERA_DIM, n_points=2, n_inverse=0, cam=cam)
+    ks = np.array([0, 1])
+    bad = np.array([np.eye(2), np.diag([1.0, -1.0])])
+    with pytest.raises(ValueError, match="positive definite"):
+        innovation_covariances(s, predict(s, ks, cam), R_PIX, bad)
+    with pytest.raises(ValueError, match="shapes"):
+        innovation_covariances(s, predict(s, ks, cam), R_PIX, np.ones((2, 3)))
