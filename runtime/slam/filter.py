@@ -125,6 +125,8 @@ def measurement_noise(R: np.ndarray, r_scale, m: int) -> np.ndarray:
         raise ValueError(f"measurement noise shapes must be (m,) or (m, 2, 2) and finite, got {s.shape} for m = {m}")
     if m and not ((s[:, 0, 0] > 0) & (s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0] > 0)).all():
         raise ValueError("measurement noise shapes must be positive definite")
+    if R[0, 1] == 0.0 and R[1, 0] == 0.0 and R[0, 0] == R[1, 1]:
+        return R[0, 0] * s                        # isotropic: L A L^T = sigma^2 A
     L = np.linalg.cholesky(R)
     return np.ascontiguousarray(L @ s @ L.T)
 

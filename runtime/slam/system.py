@@ -242,7 +242,6 @@ class _Track:
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
         self._first_views_key: list | None = None
-        self._shapes_key: list | None = None
         self._first_views_cache = (np.zeros((0, 3)), np.zeros(0, bool))
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
@@ -421,20 +420,27 @@ class _Track:
         view_noise_angle)^2 + (log range ratio / log view_noise_scale)^2``; the target's points,
         printed corners whose plane is known, are located more closely (``known_sigma_px``)."""
         s, cam = self.slam.settings, self.slam.cam
-        r0s, known = self._first_views()
+        r0s, known = self._first_views()[:2]
         return _views_kernel(pred.uv, pred.valid, Y, self.state.r, r0s, known, float(cam.width),
                              float(cam.height), float(s.margin_px), math.cos(math.radians(s.max_view_angle_deg)),
                              math.cos(math.radians(s.max_view_angle_known_deg)), float(s.max_range_ratio),
                              float(s.max_range_ratio_known), float(s.view_noise_angle_deg),
                              math.log(s.view_noise_scale), (s.known_sigma_px / self.slam.cfg.sigma_pixel) ** 2)
 
-    def _first_views(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every feature's first-view centre (N, 3) and whether it is a target point (N,), kept
-        while the map holds the same features (neither changes during a feature's life)."""
+    def _first_views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every feature's first-view centre (N, 3), whether it is a target point (N,), its match
+        noise shape (N, 2, 2) and its first view's rotation (N, 3, 3) (the identity for the
+        target's points), kept while the map holds the same features (none changes during a
+        feature's life)."""
         key = [f.id for f in self.features]
         if self._first_views_key != key:
-            self._first_views_cache = (np.array([f.r0 for f in self.features], float).reshape(-1, 3),
-                                       np.array([f.known for f in self.features], bool))
+            eye = np.eye(3)
+            fs = self.features
+            self._first_views_cache = (np.array([f.r0 for f in fs], float).reshape(-1, 3),
+                                       np.array([f.known for f in fs], bool),
+                                       np.array([f.noise_shape for f in fs], float).reshape(-1, 2, 2),
+                                       np.array([eye if f.known or f.R0 is None else f.R0 for f in fs],
+                                                float).reshape(-1, 3, 3))
             self._first_views_key = key
         return self._first_views_cache
 
@@ -510,26 +516,13 @@ class _Track:
     def _noise_shapes(self, ks: np.ndarray) -> np.ndarray:
         """(m, 2, 2) features ``ks``' match noise shapes (MapFeature.noise_shape) turned from their
         first view's image axes into this view's by the camera's roll about its optic axis since."""
-        A, R0 = self._shapes_and_first_rotations()
+        _, _, A, R0 = self._first_views()
         A, R0 = A[ks], R0[ks]
         R_rel = np.einsum("ji,kjl->kil", quat_to_rotation(self.state.q), R0)   # R_world_cam^T R0
         a = np.arctan2(R_rel[:, 1, 0] - R_rel[:, 0, 1], R_rel[:, 0, 0] + R_rel[:, 1, 1])
         c, s_ = np.cos(a), np.sin(a)
         rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)
         return rot @ A @ np.swapaxes(rot, 1, 2)
-
-    def _shapes_and_first_rotations(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every feature's noise shape (N, 2, 2) and first-view rotation (N, 3, 3) (the identity
-        for the target's points and features without one), kept while the map holds the same
-        features."""
-        key = [f.id for f in self.features]
-        if getattr(self, "_shapes_key", None) != key:
-            eye = np.eye(3)
-            self._shapes_cache = (np.array([f.noise_shape for f in self.features], float).reshape(-1, 2, 2),
-                                  np.array([eye if f.known or f.R0 is None else f.R0 for f in self.features],
-                                           float).reshape(-1, 3, 3))
-            self._shapes_key = key
-        return self._shapes_cache
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
         """``n`` of the candidates ``idx``: the target's points first, then round-robin over a

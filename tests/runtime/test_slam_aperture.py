@@ -100,6 +100,7 @@ def _track_with(features, q_world_cam):
     from runtime.slam.system import _Track
     track = _Track.__new__(_Track)
     track.features = features
+    track._first_views_key = None
     track.state = SimpleNamespace(q=np.asarray(q_world_cam, float))
     return track
 
