@@ -121,10 +121,11 @@ def measurement_noise(R: np.ndarray, r_scale, m: int) -> np.ndarray:
         if not (np.isfinite(s).all() and (s > 0).all()):
             raise ValueError("measurement noise scales must be finite and positive")
         return s[:, None, None] * R
-    if s.shape != (m, 2, 2) or not np.isfinite(s).all():
-        raise ValueError(f"measurement noise shapes must be (m,) or (m, 2, 2) and finite, got {s.shape} for m = {m}")
-    if m and not ((s[:, 0, 0] > 0) & (s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0] > 0)).all():
-        raise ValueError("measurement noise shapes must be positive definite")
+    if s.shape != (m, 2, 2):
+        raise ValueError(f"measurement noise shapes must be (m,) or (m, 2, 2), got {s.shape} for m = {m}")
+    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+    if m and not ((s[:, 0, 0] > 0) & (det > 0) & (det < np.inf)).all():      # NaN fails them too
+        raise ValueError("measurement noise shapes must be finite and positive definite")
     if R[0, 1] == 0.0 and R[1, 0] == 0.0 and R[0, 0] == R[1, 1]:
         return R[0, 0] * s                        # isotropic: L A L^T = sigma^2 A
     L = np.linalg.cholesky(R)

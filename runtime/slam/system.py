@@ -227,6 +227,32 @@ def _views_kernel(uv, valid, Y, r, r0s, known, width, height, margin, cos_lim, c
     return ok, scale
 
 
+@compiled_kernel()
+def _rolled_shapes(R_world_cam, A, R0, ks):
+    """(m, 2, 2) the shapes ``A[ks]`` (first-view image axes) turned by each first view's roll
+    about the optic axis to this view: the angle of ``R_world_cam^T R0``'s upper 2 x 2 block."""
+    m = ks.shape[0]
+    out = np.empty((m, 2, 2))
+    for i in range(m):
+        k = ks[i]
+        r = np.zeros((2, 2))
+        for a in range(2):
+            for b in range(2):
+                acc = 0.0
+                for j in range(3):
+                    acc += R_world_cam[j, a] * R0[k, j, b]
+                r[a, b] = acc
+        ang = np.arctan2(r[1, 0] - r[0, 1], r[0, 0] + r[1, 1])
+        c, s = np.cos(ang), np.sin(ang)
+        a00, a01, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 1]
+        # rot A rot^T, rot = [[c, -s], [s, c]]
+        out[i, 0, 0] = c * c * a00 - 2.0 * c * s * a01 + s * s * a11
+        out[i, 1, 1] = s * s * a00 + 2.0 * c * s * a01 + c * c * a11
+        out[i, 0, 1] = c * s * (a00 - a11) + (c * c - s * s) * a01
+        out[i, 1, 0] = out[i, 0, 1]
+    return out
+
+
 class _Track:
     """One filter and its map: the state, the features' appearance and bookkeeping, rays being
     initialised (particles), and the evidence for its start-up hypothesis."""
@@ -434,13 +460,13 @@ class _Track:
         feature's life)."""
         key = [f.id for f in self.features]
         if self._first_views_key != key:
-            eye = np.eye(3)
-            fs = self.features
-            self._first_views_cache = (np.array([f.r0 for f in fs], float).reshape(-1, 3),
-                                       np.array([f.known for f in fs], bool),
-                                       np.array([f.noise_shape for f in fs], float).reshape(-1, 2, 2),
-                                       np.array([eye if f.known or f.R0 is None else f.R0 for f in fs],
-                                                float).reshape(-1, 3, 3))
+            n = len(self.features)
+            r0s, known = np.empty((n, 3)), np.empty(n, bool)
+            shapes, R0s = np.empty((n, 2, 2)), np.empty((n, 3, 3))
+            for i, f in enumerate(self.features):
+                r0s[i], known[i], shapes[i] = f.r0, f.known, f.noise_shape
+                R0s[i] = f.R0 if f.R0 is not None and not f.known else np.eye(3)
+            self._first_views_cache = (r0s, known, shapes, R0s)
             self._first_views_key = key
         return self._first_views_cache
 
@@ -517,12 +543,7 @@ class _Track:
         """(m, 2, 2) features ``ks``' match noise shapes (MapFeature.noise_shape) turned from their
         first view's image axes into this view's by the camera's roll about its optic axis since."""
         _, _, A, R0 = self._first_views()
-        A, R0 = A[ks], R0[ks]
-        R_rel = np.einsum("ji,kjl->kil", quat_to_rotation(self.state.q), R0)   # R_world_cam^T R0
-        a = np.arctan2(R_rel[:, 1, 0] - R_rel[:, 0, 1], R_rel[:, 0, 0] + R_rel[:, 1, 1])
-        c, s_ = np.cos(a), np.sin(a)
-        rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)
-        return rot @ A @ np.swapaxes(rot, 1, 2)
+        return _rolled_shapes(quat_to_rotation(self.state.q), A, R0, np.asarray(ks, np.intp))
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
         """``n`` of the candidates ``idx``: the target's points first, then round-robin over a

@@ -33,14 +33,19 @@ def match_noise_shape(template: np.ndarray, max_ratio: float = MAX_NOISE_ELONGAT
     and the weakest gets the ratio of M's eigenvalues, at most ``max_ratio``: a corner stays
     near isotropic, an edge's match is uncertain along the edge. A flat template: ``max_ratio I``."""
     t = np.asarray(template, float)
-    gv, gu = np.gradient(t)
-    gu, gv = gu[1:-1, 1:-1], gv[1:-1, 1:-1]
-    M = np.array([[np.sum(gu * gu), np.sum(gu * gv)], [np.sum(gu * gv), np.sum(gv * gv)]])
-    w, V = np.linalg.eigh(M)
-    if not (np.isfinite(w).all() and w[1] > 0):
+    gu = 0.5 * (t[1:-1, 2:] - t[1:-1, :-2])       # central differences inside the border
+    gv = 0.5 * (t[2:, 1:-1] - t[:-2, 1:-1])
+    a, b, c = float(np.vdot(gu, gu)), float(np.vdot(gu, gv)), float(np.vdot(gv, gv))
+    half_gap = math.hypot(0.5 * (a - c), b)
+    w_max, w_min = 0.5 * (a + c) + half_gap, 0.5 * (a + c) - half_gap
+    if not (math.isfinite(w_max) and w_max > 0):
         return max_ratio * np.eye(2)
-    ratio = min(w[1] / max(w[0], w[1] / max_ratio), max_ratio)
-    return ratio * np.outer(V[:, 0], V[:, 0]) + np.outer(V[:, 1], V[:, 1])
+    ratio = min(w_max / max(w_min, w_max / max_ratio), max_ratio)
+    # The strongest direction, (cos, sin) of the angle 0.5 atan2(2b, a - c); the weakest across it.
+    angle = 0.5 * math.atan2(2.0 * b, a - c)
+    strong = np.array([math.cos(angle), math.sin(angle)])
+    weak = np.array([-strong[1], strong[0]])
+    return np.outer(strong, strong) + ratio * np.outer(weak, weak)
 
 
 @dataclass
@@ -78,13 +83,10 @@ class MapFeature:
     last_seen: int = -1
     nis: list = field(default_factory=list)   # normalised innovations of its latest inlier matches
     drift: np.ndarray | None = None
-    _noise_shape: np.ndarray | None = field(default=None, repr=False, compare=False)
+    noise_shape: np.ndarray = field(init=False, repr=False, compare=False)
 
-    @property
-    def noise_shape(self) -> np.ndarray:
-        if self._noise_shape is None:
-            self._noise_shape = np.eye(2) if self.known else match_noise_shape(self.template)
-        return self._noise_shape
+    def __post_init__(self):
+        self.noise_shape = np.eye(2) if self.known else match_noise_shape(self.template)
 
     @property
     def reliability(self) -> float:
