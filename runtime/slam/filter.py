@@ -116,7 +116,7 @@ def measurement_noise(R: np.ndarray, r_scale, m: int) -> np.ndarray:
     if r_scale is None:
         return np.broadcast_to(R, (m, 2, 2)).copy()
     s = np.asarray(r_scale, float)
-    if s.shape == (m,) or s.size == m and s.ndim <= 1:
+    if s.ndim <= 1 and s.size == m:
         s = s.reshape(m)
         if not (np.isfinite(s).all() and (s > 0).all()):
             raise ValueError("measurement noise scales must be finite and positive")

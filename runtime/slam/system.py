@@ -235,14 +235,12 @@ def _rolled_shapes(R_world_cam, A, R0, ks):
     out = np.empty((m, 2, 2))
     for i in range(m):
         k = ks[i]
-        r = np.zeros((2, 2))
-        for a in range(2):
-            for b in range(2):
-                acc = 0.0
-                for j in range(3):
-                    acc += R_world_cam[j, a] * R0[k, j, b]
-                r[a, b] = acc
-        ang = np.arctan2(r[1, 0] - r[0, 1], r[0, 0] + r[1, 1])
+        # The upper 2 x 2 block of R_world_cam^T R0[k]: (r00 + r11, r10 - r01) is the roll's angle.
+        cos_sum, sin_sum = 0.0, 0.0
+        for j in range(3):
+            cos_sum += R_world_cam[j, 0] * R0[k, j, 0] + R_world_cam[j, 1] * R0[k, j, 1]
+            sin_sum += R_world_cam[j, 1] * R0[k, j, 0] - R_world_cam[j, 0] * R0[k, j, 1]
+        ang = np.arctan2(sin_sum, cos_sum)
         c, s = np.cos(ang), np.sin(ang)
         a00, a01, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 1]
         # rot A rot^T, rot = [[c, -s], [s, c]]

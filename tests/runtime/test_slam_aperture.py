@@ -23,6 +23,12 @@ def _edge(angle: float, texture: float = 0.0, rng=None, size: int = T) -> np.nda
     return img.astype(np.float32)
 
 
+def _corner(size: int = T) -> np.ndarray:
+    """Four quadrants, dark and light in a checker: an X-corner at the centre."""
+    v, u = np.mgrid[0:size, 0:size] - (size - 1) / 2
+    return (60.0 + 80.0 * ((u > 0) ^ (v > 0))).astype(np.float32)
+
+
 def _major_axis(A: np.ndarray) -> tuple[float, np.ndarray]:
     w, V = np.linalg.eigh(A)
     return w[1] / w[0], V[:, 1]
@@ -41,9 +47,7 @@ def test_an_edge_is_uncertain_along_itself_and_certain_across():
 
 
 def test_a_corner_is_near_isotropic_and_a_flat_template_gets_the_cap():
-    v, u = np.mgrid[0:T, 0:T] - (T - 1) / 2
-    corner = (60.0 + 80.0 * ((u > 0) ^ (v > 0))).astype(np.float32)
-    ratio, _ = _major_axis(match_noise_shape(corner))
+    ratio, _ = _major_axis(match_noise_shape(_corner()))
     assert ratio < 1.5
     assert np.allclose(match_noise_shape(np.full((T, T), 7.0)), MAX_NOISE_ELONGATION * np.eye(2))
 
@@ -59,7 +63,7 @@ def _ssd_match(image: np.ndarray, template: np.ndarray) -> np.ndarray:
         a, b, c = r[prev], r[v, u], r[nxt]
         if a - 2 * b + c > 0:
             out[axis] += 0.5 * (a - c) / (a - 2 * b + c)
-    return np.array(out)
+    return out
 
 
 def test_the_shape_follows_the_scatter_of_real_matches():
@@ -78,8 +82,7 @@ def test_the_shape_follows_the_scatter_of_real_matches():
         ratio_seen, major_seen = _major_axis(np.cov(hits.T))
         assert ratio_seen > 5 and ratio_model > 5
         assert abs(major_seen @ major_model) > np.cos(np.radians(10))
-    v, u = np.mgrid[0:big, 0:big] - (big - 1) / 2
-    scene = (60.0 + 80.0 * ((u > 0) ^ (v > 0))).astype(np.float32)
+    scene = _corner(big)
     template = scene[o:o + T, o:o + T].copy()
     hits = np.array([_ssd_match(scene + rng.normal(0, 4.0, scene.shape).astype(np.float32), template)
                      for _ in range(300)])
@@ -120,9 +123,9 @@ def test_the_shape_turns_with_the_cameras_roll_since_the_first_view():
     np.testing.assert_allclose(np.linalg.eigvalsh(rolled), np.linalg.eigvalsh(upright))
 
 
-def test_relocalisation_tries_edges_after_corners():
-    v, u = np.mgrid[0:T, 0:T] - (T - 1) / 2
-    corner = (60.0 + 80.0 * ((u > 0) ^ (v > 0))).astype(np.float32)
-    track = _track_with([MapFeature(0, _edge(0.7), 0, np.zeros(3)), MapFeature(1, corner, 0, np.zeros(3))],
+def test_relocalisation_counts_an_edge_as_elongated_and_a_corner_not():
+    """The test (_Track._elongated) that puts edges after the rest among relocalisation's
+    candidates."""
+    track = _track_with([MapFeature(0, _edge(0.7), 0, np.zeros(3)), MapFeature(1, _corner(), 0, np.zeros(3))],
                         [1.0, 0.0, 0.0, 0.0])
     assert track._elongated(0) and not track._elongated(1)
