@@ -401,7 +401,7 @@ class FrameUpdate:
         z = np.asarray(z, dtype=float).reshape(m, 2)
         if m == 0:
             return UpdateResult(np.zeros((0, 2)), np.zeros((0, 0)), np.zeros((0, 2)))
-        if len(np.unique(ks)) != m:
+        if len(set(ks.tolist())) != m:
             raise ValueError(f"update: features {ks.tolist()} are not distinct; measure each once")
         if not np.isfinite(z).all():
             raise FeatureNotMeasurable(f"measurements of features {ks[~np.isfinite(z).all(1)].tolist()} are NaN/Inf")

@@ -266,7 +266,7 @@ class _Track:
         self.last: SearchView | None = None
         self.in_view_ids: set[int] = set()       # features predicted in view at this frame's search
         self._first_views_key: list | None = None
-        self._first_views_cache = (np.zeros((0, 3)), np.zeros(0, bool))
+        self._first_views_cache = (np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 2, 2)), np.zeros((0, 3, 3)))
         self.target_seen = 0                     # the last frame the target's corners were matched
         self.target_missed = 0                   # frames since, with all four predicted in view
         # The first frame any natural feature was mapped in (None: none yet; 0: a map given), so
@@ -458,10 +458,18 @@ class _Track:
         feature's life)."""
         key = [f.id for f in self.features]
         if self._first_views_key != key:
+            # The features kept since the last call keep their rows (by id); only new ones are read.
+            was = {fid: i for i, fid in enumerate(self._first_views_key or [])}
+            rows = np.array([was.get(fid, -1) for fid in key], np.intp)
+            kept = np.flatnonzero(rows >= 0)
             n = len(self.features)
             r0s, known = np.empty((n, 3)), np.empty(n, bool)
             shapes, R0s = np.empty((n, 2, 2)), np.empty((n, 3, 3))
-            for i, f in enumerate(self.features):
+            if len(kept):
+                for new, old in zip((r0s, known, shapes, R0s), self._first_views_cache):
+                    new[kept] = old[rows[kept]]
+            for i in np.flatnonzero(rows < 0).tolist():
+                f = self.features[i]
                 r0s[i], known[i], shapes[i] = f.r0, f.known, f.noise_shape
                 R0s[i] = f.R0 if f.R0 is not None and not f.known else np.eye(3)
             self._first_views_cache = (r0s, known, shapes, R0s)
