@@ -40,7 +40,7 @@ from .templates import MapFeature, plane_corners_kernel
 
 #: A window flatter than this grey-level variance cannot hold a match (ZNCC is noise there).
 FLAT_VARIANCE = 4.0
-#: The sub-pixel refinement's damping of the template's shape towards the predicted one
+#: The weight of the sub-pixel refinement's prior on the template's shape, the predicted one
 #: (affine Gauss-Newton; larger: closer to translation only).
 AFFINE_DAMPING = 1.0
 #: Templates this wide or wider are searched coarse to fine (their half-size template, at least
@@ -377,10 +377,13 @@ def _best_in_grid(grid):
 @compiled_kernel()
 def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
     """Sub-pixel refinement of a match at (u, v) px by Gauss-Newton on the zero-mean, unit-norm
-    template under an affine warp about its centre (inverse compositional; ``reg`` damps the
-    linear part towards the identity): the template's shape is fitted to the image too, so a
-    template predicted with a slightly wrong warp does not pull its centre off the feature.
-    Returns (u, v, ok): ok False if it leaves the image, diverges or moves over a pixel."""
+    template under an affine warp about its centre (inverse compositional): the template's shape
+    is fitted to the image too, so a template predicted with a slightly wrong warp does not pull
+    its centre off the feature. The shape has a prior, ``reg |A - I|^2`` (A: the warp's linear
+    part, the identity being the predicted shape), in both the step's matrix and its gradient:
+    with the step's damping alone, the shape of an edge or a noisy patch wandered on from
+    iteration to iteration and the centre with it (no fixed point). Returns (u, v, ok): ok False
+    if it leaves the image, diverges or moves over a pixel."""
     H, W = img.shape
     t = tpl.shape[0]
     h = t // 2
@@ -459,6 +462,12 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
                 for i in range(6):
                     g[i] += SD[k, i] * e
                 k += 1
+        # The prior's pull of the shape back to the predicted one, reg (A - I), in dp's order
+        # (p0 = a00 - 1, p1 = a10, p2 = a01, p3 = a11 - 1).
+        g[0] += reg * (a00 - 1.0)
+        g[1] += reg * a10
+        g[2] += reg * a01
+        g[3] += reg * (a11 - 1.0)
         for i in range(6):                             # dp = Hs^-1 g by the Cholesky factor
             acc = g[i]
             for q in range(i):
