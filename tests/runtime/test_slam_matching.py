@@ -159,8 +159,6 @@ def test_the_subpixel_refinement_has_a_fixed_point_on_noisy_edges():
     within half a pixel: it converges (40 iterations end where 10 do, within 1e-3 px; a shape
     that wanders on, as when its prior was only the step's damping, moved the centre up to
     0.4 px) and puts the match across the edges within 0.3 px of the truth (median 0.1)."""
-    from runtime.slam.search import extract_template
-
     across = []
     for seed in range(30):
         rng = np.random.default_rng(100 + seed)
@@ -183,8 +181,6 @@ def test_the_subpixel_refinement_fits_a_turned_and_scaled_view():
     """Texture turned by up to 4 degrees and scaled by up to 4% about the feature and shifted:
     started within half a pixel, the refinement converges and lands within 0.2 px (median 0.1)
     of where the template's centre moved, the prior on the shape notwithstanding."""
-    from runtime.slam.search import extract_template
-
     err = []
     for seed in range(20):
         rng = np.random.default_rng(200 + seed)
