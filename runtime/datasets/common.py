@@ -179,6 +179,9 @@ class DatasetSequence(Sequence):
     stamps_ns : (N,) int64, each frame's exact time, ns (``timestamps`` are these in float s).
     groundtruth_ns, imu_ns : (M,) int64 exact times of the ground truth and IMU rows, or None.
     depth_scale : depth image units per metre (TUM: 5000).
+    depth_max_dt_s : a depth image belongs to the frame whose time is nearest, within this
+        (TUM RGB-D's depth and colour stamps differ by up to ~15 ms; 0.02 s is its associate.py's
+        default).
     notes : what the reader adapted (one line each), for the user to see.
     """
 
@@ -187,6 +190,7 @@ class DatasetSequence(Sequence):
     groundtruth_ns: np.ndarray | None = None
     imu_ns: np.ndarray | None = None
     depth_scale: float = DEPTH_SCALE
+    depth_max_dt_s: float = 0.02
     notes: tuple[str, ...] = ()
 
     def ns_at(self, t: float) -> int:
@@ -195,15 +199,15 @@ class DatasetSequence(Sequence):
 
     def depth(self, index: int) -> np.ndarray | None:
         """Depth image (H, W) float32 of frame ``index``, metres along the optic axis (NaN where none),
-        or None if the sequence has no depth at that frame's time; a depth PNG that is 8-bit or of
-        another size than camera.toml's raises SequenceError naming the file."""
+        or None if no depth image is within depth_max_dt_s of the frame's time; a depth PNG that
+        is 8-bit or of another size than camera.toml's raises SequenceError naming the file."""
         from .tum import read_depth
 
         if self.depth_paths is None:
             return None
         t = self.timestamps[index]
         j = int(np.argmin(np.abs(self.depth_timestamps - t)))
-        if abs(self.depth_timestamps[j] - t) > 1e-6:
+        if abs(self.depth_timestamps[j] - t) > self.depth_max_dt_s:
             return None
         return read_depth(self.depth_paths[j], self.camera, self.depth_scale)
 

@@ -120,6 +120,8 @@ def read_camera_yaml(path: str | Path) -> tuple[CameraIntrinsics, np.ndarray]:
     coeffs = _vector(doc, "distortion_coefficients", len(terms), path, f"{dist}: {' '.join(terms)}")
     fu, fv, cu, cv = _vector(doc, "intrinsics", 4, path, "[fu, fv, cu, cv] in pixels")
     w, h = _vector(doc, "resolution", 2, path, "[width, height] in pixels")
+    if w != int(w) or h != int(h):
+        raise SequenceError(f"{path}: resolution = {[w, h]} must be whole pixels ([width, height])")
     try:
         cam = CameraIntrinsics(width=int(w), height=int(h), fx=fu, fy=fv, cx=cu, cy=cv, model=model,
                                **dict(zip(terms, coeffs)))

@@ -276,7 +276,7 @@ def test_cli_convert_kitti(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------- TUM depth
 
-def _tum(root, depth: np.ndarray | None = None):
+def _tum(root, depth: np.ndarray | None = None, depth_t: str = "1305031102.175304"):
     root.mkdir()
     save_camera(CameraIntrinsics(width=W, height=H, fx=30.0, fy=30.0, cx=15.5, cy=11.5), root / "camera.toml")
     (root / "rgb").mkdir()
@@ -285,7 +285,7 @@ def _tum(root, depth: np.ndarray | None = None):
     (root / "rgb.txt").write_text("1305031102.175304 rgb/1.png\n")
     if depth is not None:
         cv2.imwrite(str(root / "depth" / "1.png"), depth)
-        (root / "depth.txt").write_text("1305031102.175304 depth/1.png\n")
+        (root / "depth.txt").write_text(f"{depth_t} depth/1.png\n")
     return root
 
 
@@ -300,6 +300,13 @@ def test_tum_depth_in_metres(tmp_path):
     assert d[1, 2] == np.float32(12345 / 5000) and d[5, 5] == 1.0
     d2 = read_depth(tmp_path / "tum" / "depth" / "1.png", seq.camera, depth_scale=1000.0)
     assert d2[1, 2] == np.float32(12.345)
+
+
+def test_tum_depth_associated_by_nearest_time(tmp_path):
+    # Real TUM RGB-D stamps depth apart from colour (up to ~15 ms): 12 ms is the frame's, 30 ms not.
+    raw = np.full((H, W), 10000, np.uint16)
+    assert open_any(_tum(tmp_path / "a", raw, "1305031102.187304")).depth(0)[3, 3] == 2.0
+    assert open_any(_tum(tmp_path / "b", raw, "1305031102.205304")).depth(0) is None
 
 
 # ------------------------------------------------------------------------------------- bad input
