@@ -279,8 +279,9 @@ def test_every_interface_prints_a_usable_address_and_warns_once():
     assert "0.0.0.0:" not in text and st.url.startswith("http://127.0.0.1:")
     assert "all interfaces" in text and socket.gethostname() in text
     assert sum("plain HTTP" in line for line in lines) == 1
-    assert TOKEN not in [ln for ln in lines if "wearer" in ln][0]
-    quiet = address_lines("http://127.0.0.1:1/?token=T", "http://127.0.0.1:1/wearer?token=W", "127.0.0.1", None)
+    assert TOKEN not in lines[1] and st.wearer_token in lines[1]
+    assert f"{socket.gethostname()}:{st.port}/wearer?token={st.wearer_token}" in text     # for the wearer's phone
+    quiet = address_lines("http://127.0.0.1:1/?token=T", "http://127.0.0.1:1/wearer?token=W", "127.0.0.1")
     assert not any("plain HTTP" in line or "all interfaces" in line for line in quiet)
 
 

@@ -48,14 +48,15 @@ def is_everywhere(host: str) -> bool:
         return False
 
 
-def address_lines(url: str, wearer_url: str, host: str, remote_url: str | None) -> list[str]:
+def address_lines(url: str, wearer_url: str, host: str, remote: tuple[str, str] | None = None) -> list[str]:
     """What the station prints once it listens: the operator's address (with the token), the
     wearer's, where it listens when that is beyond loopback, and one warning that the token
-    then travels in plain HTTP. ``remote_url``: the operator's address by this machine's name
-    when ``host`` is every interface (None otherwise)."""
+    then travels in plain HTTP. ``remote``: the operator's and the wearer's addresses by this
+    machine's name when ``host`` is every interface (None otherwise)."""
     lines = [f"station: open {url}", f"station: the wearer's page (it reads the prompt, nothing more): {wearer_url}"]
-    if remote_url is not None:
-        lines.append(f"station: listening on all interfaces ({host}); from another machine: {remote_url}")
+    if remote is not None:
+        lines.append(f"station: listening on all interfaces ({host}); from another machine: {remote[0]} "
+                     f"(the wearer's page: {remote[1]})")
     if not is_loopback(host):
         lines.append("station: warning: beyond loopback the token travels in plain HTTP, readable on the network's "
                      "path; serve only on a network you trust, or keep --host 127.0.0.1 and reach it through ssh -L")
@@ -140,10 +141,13 @@ class Station:
         return self._base(self.host)
 
     @property
-    def remote_url(self) -> str | None:
-        """The page's address (with the token) by this machine's name, when serving on every
-        interface; None otherwise."""
-        return f"{self._base(socket.gethostname())}?token={self.token}" if is_everywhere(self.host) else None
+    def remote_urls(self) -> tuple[str, str] | None:
+        """The operator's and the wearer's addresses (with their tokens) by this machine's name,
+        when serving on every interface; None otherwise."""
+        if not is_everywhere(self.host):
+            return None
+        base = self._base(socket.gethostname())
+        return f"{base}?token={self.token}", f"{base}wearer?token={self.wearer_token}"
 
     @property
     def url(self) -> str:
@@ -157,7 +161,7 @@ class Station:
 
     def address_lines(self) -> list[str]:
         """What to print once it listens (see :func:`address_lines`)."""
-        return address_lines(self.url, self.wearer_url, self.host, self.remote_url)
+        return address_lines(self.url, self.wearer_url, self.host, self.remote_urls)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Until the loop ends (or ``timeout`` s); True if it ended."""
