@@ -647,29 +647,44 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_station(args) -> int:
-    import math
-
     from runtime.apps.station.record import check_out
     from runtime.apps.station.station import Station, resolve_token, serve
     from runtime.gaze import ControllerSettings
 
-    resolve_token(args.token)                   # bad input is refused before anything starts
-    if args.out:
-        check_out(args.out)
+    # Bad input is refused before anything starts (no address printed, no folder made).
+    resolve_token(args.token)
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port {args.port} is not a port number (0-65535; 0: any free one)")
-    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     if (args.scenario is None) == (args.rig is None):
         raise ValueError("wvr station needs one of --scenario NAME (the twin) or --rig rig.toml (the hardware)")
+    if not (math.isfinite(args.limit) and args.limit > 0):
+        raise ValueError(f"--limit {args.limit:g} deg/s: the controlled-motion limit must be above 0 (the paper's is 30)")
     if args.scenario is not None:
+        _check_limit(args.limit, args.head)
+        if args.seed < 0:
+            raise ValueError(f"--seed {args.seed}: give a seed of 0 or more")
+        if not (math.isfinite(args.click_error) and 0.0 <= args.click_error <= 50.0):
+            raise ValueError(f"--click-error {args.click_error}: give the operator's click error in pixels, 0 to 50")
+    if args.out:
+        check_out(args.out)
+    if args.scenario is not None:
+        from runtime.twin.operator import TargetHidden
         from runtime.twin.scenarios import get_scenario
         from wvr.assemble import clicked_target
 
         sc = get_scenario(args.scenario)
         robot = make_twin(args.head, args.mount, args.camera)
         robot.configure(sc, seed=args.seed, seconds=args.seconds)
-        start, truth, seconds = (lambda obs: clicked_target(robot, args.click_error, args.seed)), robot, \
-            (args.seconds if args.seconds is not None else sc.seconds)
+
+        def start(obs):
+            try:
+                return clicked_target(robot, args.click_error, args.seed)
+            except TargetHidden as e:
+                # The twin's own hint names sim record's options; the station's place is its --seed.
+                raise TargetHidden(f"{str(e).split('; use another')[0]}; choose another --seed (the station's place "
+                                   "follows it)") from None
+
+        truth, seconds = robot, (args.seconds if args.seconds is not None else sc.seconds)
         notes = {"scenario": sc.name, "seed": args.seed}
     else:
         from runtime.drivers.rig import load_rig
@@ -677,12 +692,17 @@ def cmd_station(args) -> int:
         from wvr.assemble import make_rig
 
         cfg = load_rig(args.rig)
+        top = math.degrees(float(np.min(cfg.head.max_speed)))
+        if args.limit > top + 1e-9:
+            raise ValueError(f"--limit {args.limit:g} deg/s: the controlled-motion limit must be at most the servos' "
+                             f"{top:.0f} deg/s (the paper's is 30)")
         if cfg.start_target is None:
             raise ValueError(f"{args.rig}: the station starts SLAM from a known target: add [start] target = "
                              "\"target.toml\" (known points and their pixels in the first image)")
         start, truth, seconds = load_target(cfg.start_target), None, args.seconds
         robot = make_rig(cfg)
         notes = {"rig": str(Path(args.rig).resolve())}
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
 
     def finish():
         # In the loop's thread, as it ends: the rig's safe stop (hold, home slowly); the twin's
@@ -695,10 +715,8 @@ def cmd_station(args) -> int:
                       seconds=seconds, settings=settings, notes=notes, on_finish=finish)
 
     def ready(st):
-        print(f"station: open {st.url}", flush=True)
-        print(f"station: the wearer's page is {st.public_url}wearer, opened with the same token", flush=True)
-        if not st.loopback:
-            print(f"station: listening on {args.host}, beyond this machine: keep the token to yourself", flush=True)
+        for line in st.address_lines():
+            print(line, flush=True)
 
     try:
         s = serve(station, on_ready=ready)
