@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, load_camera, save_camera
 from kinematics.outdir import OutputFolderError, check_complete, check_output, output_folder
+from kinematics.textnumbers import first_non_number
 from kinematics.tomlfile import read_toml
 
 # Column layouts of the text files (the '#' header line each writer puts at the top).
@@ -120,7 +121,7 @@ def _read_table(path: str | Path, columns: tuple[str, ...], what: str) -> tuple[
         try:
             row = [float(x) for x in fields_]
         except ValueError:
-            bad = next(x for x in fields_ if not _is_float(x))
+            bad = first_non_number(fields_)
             col = columns[fields_.index(bad)]
             raise SequenceError(f"{path}:{n}: {col} = {bad!r} is not a number; each line is "
                                 f"'{layout}'") from None
@@ -135,14 +136,6 @@ def _read_table(path: str | Path, columns: tuple[str, ...], what: str) -> tuple[
         rows.append(row)
         linenos.append(n)
     return np.array(rows, dtype=np.float64).reshape(len(rows), len(columns)), linenos
-
-
-def _is_float(s: str) -> bool:
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return False
 
 
 def _header_lines(columns: tuple[str, ...], header: str | None, units: str) -> list[str]:
