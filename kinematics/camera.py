@@ -246,7 +246,7 @@ def _camera_table(d: Mapping) -> dict:
     model = t.get("model", "brown")
     if not isinstance(model, str) or model not in LENS_MODELS:
         raise CameraFileError(f"[camera].model = {_show(model)} is not a known lens model ({_HINTS['model']})")
-    allowed = _REQUIRED + ("model",) + LENS_MODELS[model]
+    allowed = _REQUIRED + ("model", "depth_scale") + LENS_MODELS[model]
     for k in t:
         if k in allowed:
             continue
@@ -262,7 +262,13 @@ def _camera_table(d: Mapping) -> dict:
     for k in _REQUIRED:
         if k not in t:
             raise CameraFileError(f"[camera].{k} is missing; add it ({_HINTS[k]})")
-    return dict(t)
+    t = dict(t)
+    # The depth images' units per metre: the sequence's, read by its depth reader, not the lens's.
+    ds = t.pop("depth_scale", 5000.0)
+    if not _is_real(ds) or not math.isfinite(ds) or ds <= 0:
+        raise CameraFileError(f"[camera].depth_scale = {_show(ds)} must be a positive number (depth image units "
+                              "per metre; TUM RGB-D: 5000)")
+    return t
 
 
 def load_camera(path: str | Path) -> CameraIntrinsics:
