@@ -30,8 +30,11 @@ from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composit
 
 # Every package's bad-input exception derives from ValueError and carries a one-line message.
 from runtime.drivers import DriverError  # noqa: E402
+from runtime.robot import MOTION_LIMIT_DEG_S  # noqa: E402
+from runtime.safety import EStopLatched  # noqa: E402
 
-USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError)
+USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError,
+               EStopLatched)
 #: A message longer than this is cut: a value echoed from a file can be megabytes long.
 MAX_MESSAGE = 400
 
@@ -356,7 +359,7 @@ def cmd_track(args) -> int:
             raise ValueError("--servo runs the closed loop in the twin: give --scenario NAME (and no SEQ)")
         if args.seq:
             raise ValueError(f"--servo runs in the twin, not on a sequence: leave out {args.seq!r}")
-        args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, 30.0
+        args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, MOTION_LIMIT_DEG_S
         return cmd_sim_run(args)
     if not args.seq:
         raise ValueError("give the sequence folder SEQ (or --servo --scenario NAME for the closed loop)")
@@ -485,7 +488,7 @@ def cmd_head(args) -> int:
     import math
 
     from runtime.drivers.rig import load_rig, open_servo_board
-    from runtime.drivers.safety import EStop
+    from runtime.safety import EStop
 
     cfg = load_rig(args.rig)
     estop = EStop(cfg.estop_file)
@@ -670,21 +673,22 @@ def cmd_station(args) -> int:
     if args.scenario is not None:
         from runtime.twin.operator import TargetHidden
         from runtime.twin.scenarios import get_scenario
-        from wvr.assemble import clicked_target
+        from wvr.assemble import clicked_target, safe_twin
 
         sc = get_scenario(args.scenario)
-        robot = make_twin(args.head, args.mount, args.camera)
-        robot.configure(sc, seed=args.seed, seconds=args.seconds)
+        twin = make_twin(args.head, args.mount, args.camera)
+        twin.configure(sc, seed=args.seed, seconds=args.seconds)
+        robot = safe_twin(twin, math.radians(args.limit))
 
         def start(obs):
             try:
-                return clicked_target(robot, args.click_error, args.seed)
+                return clicked_target(twin, args.click_error, args.seed)
             except TargetHidden as e:
                 # The twin's own hint names sim record's options; the station's place is its --seed.
                 raise TargetHidden(f"{str(e).split('; use another')[0]}; choose another --seed (the station's place "
                                    "follows it)") from None
 
-        truth, seconds = robot, (args.seconds if args.seconds is not None else sc.seconds)
+        truth, seconds = twin, (args.seconds if args.seconds is not None else sc.seconds)
         notes = {"scenario": sc.name, "seed": args.seed}
     else:
         from runtime.drivers.rig import load_rig
@@ -859,8 +863,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "known rectangle's centre)")
     run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     run.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
-    run.add_argument("--limit", type=float, default=30.0,
-                     help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
+    run.add_argument("--limit", type=float, default=MOTION_LIMIT_DEG_S,
+                     help="controlled-motion limit on every joint rate, deg/s (default %(default)g; at most the servos')")
     run.add_argument("--init", type=_box, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
@@ -901,7 +905,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "default for fixate: the start target's centre)")
     rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     rr.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
-    rr.add_argument("--limit", type=_positive, default=30.0, help="controlled-motion limit, deg/s (at most rig.toml's)")
+    rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
+                    help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")
     rr.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
     rr.add_argument("--recentre", type=_nonnegative, default=0.0, metavar="PER_S",
@@ -995,7 +1000,8 @@ def build_parser() -> argparse.ArgumentParser:
     stn.add_argument("--token", help="the access token (default: a new random one, printed once)")
     stn.add_argument("--out", help="folder for the recording when the station stops (trajectory.tum, events.csv, "
                      "labels.toml; groundtruth.txt on the twin)")
-    stn.add_argument("--limit", type=float, default=30.0, help="controlled-motion limit, deg/s (default 30)")
+    stn.add_argument("--limit", type=float, default=MOTION_LIMIT_DEG_S,
+                     help="controlled-motion limit, deg/s (default %(default)g)")
     stn.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="twin: how far off the simulated person clicks the target's corners (default 2.5)")
     stn.set_defaults(func=cmd_station)
