@@ -208,6 +208,8 @@ def _thin(points, scale2, off2):
     # Rows of the bitmap padded to whole words, so that the scan below needs no division.
     d0, d1 = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
     row_words = (hi[2] - lo[2]) // 64 + 1
+    if d0 * d1 * row_words * 64 >= 2**31:
+        raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
     bits = np.zeros(d0 * d1 * row_words, np.uint64)
     cell = np.empty(M, np.int32)
     _cells(points, 0, M, scale2, off2, lo, d1, 64 * row_words, cell)
@@ -372,6 +374,8 @@ def _count_final(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s
         lo_i[d] = np.int32(math.floor(x0 * scale1 - off1[d])) - 1
         hi_i[d] = np.int32(math.floor(x1 * scale1 - off1[d])) + 1
     d1, d2 = hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
+    if (hi_i[0] - lo_i[0] + 1) * d1 * d2 >= 2**31:
+        raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
     occ = np.zeros(((hi_i[0] - lo_i[0] + 1) * d1 * d2) // 64 + 1, np.uint64)
     R = np.empty((3, 3))
     cell = np.empty(max(S, boundary.shape[1], boxes.shape[1]), np.int32)

@@ -225,6 +225,19 @@ def cmd_design_evaluate(args) -> int:
     return 0
 
 
+def cmd_design_compare(args) -> int:
+    from design.convergence import fraction_to_match, read_evaluations
+
+    c = fraction_to_match(*read_evaluations(args.run), *read_evaluations(args.baseline), at=args.at)
+    kind = "exact" if c.exact else "approximate"
+    if c.needed is None:
+        print(f"never reached: {c.reached:.5f} at {c.at} evaluations against the baseline's {c.target:.5f} ({kind})")
+    else:
+        print(f"fraction {c.fraction:.3f}: {c.needed} of {c.at} evaluations reach the baseline's hypervolume "
+              f"{c.target:.5f} ({kind}; {c.reached:.5f} at {c.at})")
+    return 0
+
+
 def cmd_design_template(args) -> int:
     from design.sweep_file import default_sweep_text
 
@@ -787,6 +800,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("head", help="head.toml, or 'reference'")
     ev.add_argument("--sweep", help="sweep.toml for the workload and settings (default: the default sweep)")
     ev.set_defaults(func=cmd_design_evaluate)
+    cmp_ = dsub.add_parser("compare", help="share of a baseline's evaluations a sweep needs to reach the "
+                           "baseline's hypervolume (two evaluations.csv, or their folders)")
+    cmp_.add_argument("run", help="the sweep's evaluations.csv (or folder)")
+    cmp_.add_argument("baseline", help="the baseline's, e.g. an --algorithm random sweep of the same sweep file")
+    cmp_.add_argument("--at", type=_positive_int, default=2520, help="the baseline's budget (default 2520)")
+    cmp_.set_defaults(func=cmd_design_compare)
     tpl = dsub.add_parser("sweep-template", help="print the default sweep.toml to start your own")
     tpl.set_defaults(func=cmd_design_template)
 
