@@ -29,7 +29,7 @@ def optimise(spec: SweepSpec, out: str | Path, *, evaluations: int | None = None
     out = Path(out)
     check_client_options(workers, scheduler, dashboard)
     budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
-    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume)):
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget)):
         client = open_client(workers, scheduler, dashboard)
         try:
             result = run_sweep(spec, out, evaluations=budget, seed=seed, algorithm=algorithm, resume=resume,

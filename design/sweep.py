@@ -276,8 +276,10 @@ SWEEP_FILES = {"sweep.toml", "evaluations.csv", "state.json", "INCOMPLETE", ".wv
                "evaluations.csv.tmp", "state.json.tmp"}
 
 
-def check_sweep_folder(spec: SweepSpec, out: Path, seed: int, algorithm: str, resume: bool) -> None:
-    """Refuse, before anything is written, a folder the sweep cannot start or resume in."""
+def check_sweep_folder(spec: SweepSpec, out: Path, seed: int, algorithm: str, resume: bool,
+                       budget: int | None = None) -> None:
+    """Refuse, before anything is written, a folder the sweep cannot start or resume in (and a
+    resume whose ``budget`` is below the evaluations already logged)."""
     out = Path(out)
     log_path, spec_path = out / "evaluations.csv", out / "sweep.toml"
     if resume:
@@ -288,6 +290,12 @@ def check_sweep_folder(spec: SweepSpec, out: Path, seed: int, algorithm: str, re
         if state["seed"] != seed or state["algorithm"] != algorithm:
             raise SweepStateError(f"{out}: started with seed {state['seed']} and algorithm {state['algorithm']!r}; "
                                   "resume with the same ones")
+        if budget is not None and log_path.exists():
+            with open(log_path, errors="replace") as f:
+                logged = sum(1 for line in f if line.endswith("\n")) - 1
+            if logged > budget:
+                raise SweepStateError(f"{out}: the sweep already holds {logged} evaluations, more than the budget of "
+                                      f"{budget}; resume with --evaluations {logged} or more")
     elif (out / "state.json").exists() or (out / "state.pkl").exists() or log_path.exists():
         raise SweepStateError(f"{out} already holds a sweep; use --resume to continue it, or choose a new --out")
     elif out.is_dir():
@@ -325,7 +333,7 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
     """
     out = Path(out)
     budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
-    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume)):
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget)):
         return _run(spec, out, budget, seed, algorithm, resume, client, progress, ctx)
 
 

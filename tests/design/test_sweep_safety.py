@@ -71,6 +71,7 @@ def test_resume_with_a_smaller_budget_is_refused(tmp_path):
     run_sweep(spec, tmp_path, progress=False)
     with pytest.raises(SweepStateError, match="already holds 9 evaluations"):
         run_sweep(spec, tmp_path, evaluations=4, resume=True, progress=False)
+    assert not (tmp_path / "INCOMPLETE").exists()      # refused before anything was written
 
 
 def test_folder_of_another_run_is_not_overwritten(tmp_path):
