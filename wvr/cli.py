@@ -190,13 +190,24 @@ def cmd_kinematics_picture(args) -> int:
     return 0
 
 
+def _design_seed(text: str) -> int:
+    """--seed: a whole number from 0 to 2**32 - 1 (numpy's seeds)."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = None
+    if v is None or not 0 <= v < 2**32:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number from 0 to {2**32 - 1}")
+    return v
+
+
 def cmd_design_optimise(args) -> int:
     from design.study import optimise
     from design.sweep_file import load_sweep
 
     spec = load_sweep(args.sweep)
     o = optimise(spec, args.out, evaluations=args.evaluations, seed=args.seed, algorithm=args.algorithm,
-                 resume=args.resume, workers=args.workers, scheduler=args.scheduler)
+                 resume=args.resume, workers=args.workers, scheduler=args.scheduler, dashboard=args.dashboard)
     print(f"{o.evaluations} evaluations ({o.evaluated} computed now, {o.reused} reused), "
           f"{o.feasible} feasible, front of {o.front_size}")
     if o.chosen is not None:
@@ -214,6 +225,19 @@ def cmd_design_evaluate(args) -> int:
     crit, cons = score_head(load_head(args.head), ctx)
     for k, v in {**crit, **cons}.items():
         print(f"{k:24s} {v:.6g}")
+    return 0
+
+
+def cmd_design_compare(args) -> int:
+    from design.convergence import fraction_to_match, read_evaluations
+
+    c = fraction_to_match(*read_evaluations(args.run), *read_evaluations(args.baseline), at=args.at)
+    kind = "exact" if c.exact else "approximate"
+    if c.needed is None:
+        print(f"never reached: {c.reached:.5f} at {c.at} evaluations against the baseline's {c.target:.5f} ({kind})")
+    else:
+        print(f"fraction {c.fraction:.3f}: {c.needed} of {c.at} evaluations reach the baseline's hypervolume "
+              f"{c.target:.5f} ({kind}; {c.reached:.5f} at {c.at})")
     return 0
 
 
@@ -803,17 +827,25 @@ def build_parser() -> argparse.ArgumentParser:
     opt.add_argument("--sweep", help="sweep.toml (default: the shipped default sweep; see sweep-template)")
     opt.add_argument("--out", required=True, help="output directory")
     opt.add_argument("--evaluations", type=_positive_int, help="evaluation budget (default: the sweep file's)")
-    opt.add_argument("--seed", type=int, help="random seed (default: the sweep file's)")
+    opt.add_argument("--seed", type=_design_seed, help="random seed, 0 or more (default: the sweep file's)")
     opt.add_argument("--algorithm", choices=["nsga3", "random"], help="default: the sweep file's")
     group = opt.add_mutually_exclusive_group()
     group.add_argument("--workers", type=_positive_int, help="evaluate on a local Dask cluster of N worker processes")
     group.add_argument("--scheduler", help="evaluate on an existing Dask cluster, e.g. tcp://HOST:8786")
+    opt.add_argument("--dashboard", metavar="HOST:PORT", help="with --workers: where Dask's dashboard listens "
+                     "(default loopback, a free port; it has no authentication)")
     opt.add_argument("--resume", action="store_true", help="continue a killed sweep in --out")
     opt.set_defaults(func=cmd_design_optimise)
     ev = dsub.add_parser("evaluate", help="print the 7 criteria and the constraints of a head")
     ev.add_argument("head", help="head.toml, or 'reference'")
     ev.add_argument("--sweep", help="sweep.toml for the workload and settings (default: the default sweep)")
     ev.set_defaults(func=cmd_design_evaluate)
+    cmp_ = dsub.add_parser("compare", help="share of a baseline's evaluations a sweep needs to reach the "
+                           "baseline's hypervolume (two evaluations.csv, or their folders)")
+    cmp_.add_argument("run", help="the sweep's evaluations.csv (or folder)")
+    cmp_.add_argument("baseline", help="the baseline's, e.g. an --algorithm random sweep of the same sweep file")
+    cmp_.add_argument("--at", type=_positive_int, default=2520, help="the baseline's budget (default 2520)")
+    cmp_.set_defaults(func=cmd_design_compare)
     tpl = dsub.add_parser("sweep-template", help="print the default sweep.toml to start your own")
     tpl.set_defaults(func=cmd_design_template)
 
