@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.outdir import output_folder
 
@@ -34,6 +34,8 @@ from .problem import EvaluationContext, HeadLayoutProblem, evaluate_design
 from .search import RandomVariation, nsga3
 from .sweep_file import CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec, dump_spec
 
+#: The kind (kinematics.outdir) of a sweep's folder; it continues its own (--resume).
+SWEEP = "design optimise"
 COLUMNS = ("eval_id", "batch", "index", "algorithm", *VARIABLES, *CRITERIA, *CONSTRAINTS, "feasible")
 
 
@@ -238,7 +240,7 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
     """
     out = Path(out)
     budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
-    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume)):
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume), kind=SWEEP, reuse=True):
         return _run(spec, out, budget, seed, algorithm, resume, client, progress, ctx)
 
 
@@ -260,7 +262,7 @@ def _run(spec: SweepSpec, out: Path, budget: int, seed: int, algorithm: str, res
     logged = {(int(r["batch"]), int(r["index"])): r for r in rows}
     log = _Log(log_path, next_id=len(rows))
     reused = evaluated = 0
-    bar = tqdm(total=budget, initial=state.evaluations_done, desc=f"design {algorithm}", unit="eval",
+    bar = progress_bar(total=budget, initial=state.evaluations_done, desc=f"design {algorithm}", unit="eval",
                disable=not progress)
     try:
         while state.evaluations_done < budget:

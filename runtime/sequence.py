@@ -47,7 +47,7 @@ import tomli_w
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, load_camera, save_camera
-from kinematics.outdir import OutputFolderError, check_complete, check_output, output_folder
+from kinematics.outdir import OutputFolderError, check_complete, check_folder, output_folder, writing
 from kinematics.tomlfile import read_toml
 
 # Column layouts of the text files (the '#' header line each writer puts at the top).
@@ -72,6 +72,10 @@ _FMT_IMAGE_NAME = "%.6f"  # rgb/<t>.png, microseconds as the TUM data sets name 
 
 _SEQUENCE_FILES = "see shared/formats.md"
 DEPTH_SCALE = 5000.0  # TUM RGB-D: a depth PNG holds metres x 5000 (0.2 mm steps, up to 13.1 m)
+
+
+#: The kind (kinematics.outdir) of a folder a SequenceWriter writes on its own (wvr sim record).
+RECORDING = "sim record"
 
 
 class SequenceError(ValueError):
@@ -674,10 +678,10 @@ def check_new_recording(root: str | Path) -> Path:
     be created or written (kinematics.outdir.check_output), or that already holds a sequence."""
     root = Path(root)
     try:
-        check_output(root)
+        check_folder(root, RECORDING)      # another command's folder, a finished recording, a live writer
     except OutputFolderError as e:
         raise SequenceError(str(e)) from None
-    if (root / "rgb.txt").exists():
+    if (root / "rgb.txt").exists() and not (root / "INCOMPLETE").exists():
         raise SequenceError(f"{root / 'rgb.txt'}: already exists; record into a new folder, or delete {root} first")
     return root
 
@@ -705,12 +709,12 @@ class SequenceWriter:
                  overwrite: bool = False):
         self.root = Path(root)
         self.camera = camera
-        if not overwrite:
+        if not overwrite and not writing(self.root):     # a command's own folder (a session) it judged
             check_new_recording(self.root)
         self._files: dict[str, TextIO] = {}
         self._closed = True
         self._folder = ExitStack()
-        self._folder.enter_context(output_folder(self.root))
+        self._folder.enter_context(output_folder(self.root, kind=RECORDING, reuse=overwrite))
         self._last_t: dict[str, float] = {}
         self._last_name: str | None = None  # the previous frame's image, rgb/<t>.png
         try:

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from kinematics.outdir import INCOMPLETE, LOCK, OutputFolderError, check_complete, check_output, output_folder
+from kinematics.outdir import INCOMPLETE, KIND_FILE, LOCK, OutputFolderError, check_complete, check_output, output_folder
 
 
 def test_marker_while_writing_gone_after(tmp_path):
@@ -21,7 +21,7 @@ def test_marker_while_writing_gone_after(tmp_path):
         (out / "result.csv").write_text("a\n")
     assert not (out / INCOMPLETE).exists() and not (out / LOCK).exists()
     check_complete(out)
-    assert sorted(p.name for p in out.iterdir()) == ["result.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [KIND_FILE, "result.csv"]
 
 
 def test_a_failure_leaves_the_marker_and_an_empty_new_folder_goes(tmp_path):

@@ -57,7 +57,9 @@ class Station:
         self.token, self.token_generated = resolve_token(token)
         self.host = host
         self.loopback = is_loopback(host)
-        self.out = record.check_out(out) if out is not None else None
+        # Locked from here to close(): a second station into this folder is refused.
+        self._folder = record.claim_out(out) if out is not None else None
+        self.out = self._folder.path if self._folder is not None else None
         self.notes = dict(notes or {})
         self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace,
                                 on_finish=on_finish)
@@ -126,6 +128,8 @@ class Station:
             self.http.close()
         if self.out is not None and self.live.started.is_set():
             self.written = record.finish(self.out, self.live.run, self.notes)
+        if self._folder is not None:
+            self._folder.close(complete=self.live.started.is_set())
         return self.written
 
     def __enter__(self) -> "Station":
