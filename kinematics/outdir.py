@@ -151,7 +151,10 @@ def _take_lock(folder: Path, flag: str) -> int:
 
 
 def _command() -> str:
-    args = [Path(sys.argv[0]).name] + sys.argv[1:] if sys.argv and sys.argv[0] else ["python"]
+    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+    if name == "__main__.py":                   # python -m wvr: name the package, as the user knows it
+        name = Path(sys.argv[0]).parent.name
+    args = [name] + sys.argv[1:] if sys.argv else [name]
     text = " ".join(args)
     return text if len(text) <= 120 else text[:117] + "..."
 
@@ -290,9 +293,9 @@ class OutputFolder:
             self._fd = _take_lock(path, flag)
             if _judge(path, kind, flag, reuse, locked=True):   # again under the lock: the folder may have changed
                 _clear(path, kind, flag, say)
+            self._before = {p.name for p in path.iterdir()}   # what a refusal or a failure leaves as it was
             if check is not None:
                 check(path)
-            self._before = {p.name for p in path.iterdir()}
             (path / KIND_FILE).write_text(json.dumps({
                 "kind": kind, "command": _command(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "pid": os.getpid(), "run": uuid.uuid4().hex}) + "\n")
