@@ -122,6 +122,8 @@ def _number(kind: type, test, what: str):
 
 
 _positive_int = _number(int, lambda v: v > 0, "a whole number above 0")
+#: Gaze directions for show's coverage: a few thousand resolve it; millions only take minutes.
+_directions = _number(int, lambda v: 0 < v <= 200_000, "a whole number of directions, 1 to 200000")
 #: Seeds and other counts from 0: argparse names the flag in its message ("argument --seed: ...").
 _nonneg_int = _number(int, lambda v: v >= 0, "a whole number >= 0")
 #: How far off the (simulated) operator clicks, pixels: what sim record has always allowed.
@@ -812,7 +814,8 @@ def build_parser() -> argparse.ArgumentParser:
     show = ksub.add_parser("show", help="print the chain, masses, radii, torques and gaze coverage of a head")
     show.add_argument("head", help="head.toml, or 'reference'")
     show.add_argument("--json", action="store_true", help="print JSON instead of Markdown")
-    show.add_argument("--directions", type=_positive_int, default=2000, help="gaze directions sampled for coverage")
+    show.add_argument("--directions", type=_directions, default=2000,
+                      help="gaze directions sampled for coverage (default 2000, at most 200000)")
     show.set_defaults(func=cmd_kinematics_show)
     mj = ksub.add_parser("mjcf", help="write the head's MJCF model to standard output")
     mj.add_argument("head", help="head.toml, or 'reference'")

@@ -347,3 +347,10 @@ def test_progress_off_a_terminal_is_a_line_every_few_seconds(capsys):
     bar.update(10)
     bar.close()
     assert capsys.readouterr().err == ""
+
+
+def test_show_bounds_its_directions(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["kinematics", "show", "reference", "--directions", "2000000"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and one_line(err) and "argument --directions" in err and "200000" in err
