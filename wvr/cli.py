@@ -46,7 +46,7 @@ class _Parser(argparse.ArgumentParser):
 
 #: The largest magnitude of a command-line vector's component (m, px or deg): beyond it a
 #: product overflows, and nothing in a wearable's world is that far.
-MAX_COMPONENT = 1e6
+MAX_COMPONENT = 1e12
 
 
 def _numbers(names: tuple[str, ...], unit: str):
