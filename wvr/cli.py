@@ -623,7 +623,13 @@ def cmd_run(args) -> int:
         raise ValueError(f"task {task.kind} starts SLAM from the known target: give --start-target target.toml "
                          f"(or [start] target in {args.rig})")
     with output_folder(out, kind="run"):        # locked, INCOMPLETE until the session is written
-        return _run_on_rig(args, cfg, out, task, start, settings)
+        try:
+            return _run_on_rig(args, cfg, out, task, start, settings)
+        except DriverError as e:
+            # A fault ends the session, which is written whole up to it (session.json says so):
+            # the folder is complete; the error is still the command's result.
+            fault = e
+    raise fault
 
 
 def _run_on_rig(args, cfg, out: Path, task, start, settings) -> int:
