@@ -626,6 +626,8 @@ def cmd_run(args) -> int:
         try:
             return _run_on_rig(args, cfg, out, task, start, settings)
         except DriverError as e:
+            if not (out / "session.json").exists():
+                raise                           # the rig never started (a missing port): no folder left
             # A fault ends the session, which is written whole up to it (session.json says so):
             # the folder is complete; the error is still the command's result.
             fault = e
