@@ -235,7 +235,7 @@ def _design_seed(text: str) -> int:
     except ValueError:
         v = None
     if v is None or not 0 <= v < 2**32:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number from 0 to {2**32 - 1}")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 0 (at most {2**32 - 1}, numpy's seeds)")
     return v
 
 
