@@ -63,8 +63,9 @@ from .matching import fit_normal_kernel, match_features
 from .search import extract_template, search
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, corners_by_edges, find_quadrilateral,
                       locate_target, pose_hypotheses, print_contrast, refine_by_edges, start_hypotheses)
-from .state import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE,
-                    TD_INDEX, V_SLICE, W_SLICE, SlamNumericalError, State, check_covariance)
+from .prior import camera_prior, pose_covariance
+from .state import (CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, Q_SLICE, V_SLICE, W_SLICE,
+                    SlamNumericalError, State)
 from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
 
 __all__ = ["MonoSLAM", "FrameStats", "MapSettings", "MapView", "SearchView", "SlamStartError", "MapFeature"]
@@ -369,8 +370,7 @@ class _Track:
         st.sigma_a, st.sigma_alpha = self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha
         # Before the prediction, the camera's mean and rows of P (all a prediction changes), kept
         # while a turn may begin in this frame (SlamConfig.adapt_onset).
-        cd = self.state.cam_dim
-        before = ((self.state.x.copy(), self.state.P[:cd].copy())
+        before = (self.state.snapshot(camera_only=True)
                   if cfg.adapt_onset and not lost and self._adapting(t_prev)
                   and (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha) == (cfg.sigma_a, cfg.sigma_alpha)
                   else None)
@@ -381,7 +381,7 @@ class _Track:
             # (relocalise.py) and by the active search in the grown ellipses; either must be
             # confirmed by the active search's inliers, else the frame leaves no trace.
             counts = [(f.attempts, f.successes, f.drift) for f in self.features]
-            saved = (self.state.x.copy(), self.state.P.copy())
+            saved = self.state.snapshot()
             every = 1 if not self.localised else s.reloc_every
             if (self.low_matches - s.lost_after) % every == 0:
                 st.relocalised = self._relocalise(g)
@@ -397,10 +397,7 @@ class _Track:
                                  accept=(lambda fu: not self._turn_began(t, fu, turn)) if check else None):
                 # A turn began in this frame, and the prior impulses took its unforeseen start
                 # partly as translation: predicted and measured again with the turn's impulses.
-                x, rows = before
-                self.state.x = x
-                self.state.P[:cd] = rows
-                self.state.P[:, :cd] = rows.T
+                self.state.restore(before)
                 self._set_impulses(*turn)
                 st.onset, st.retried = True, False
                 st.sigma_a, st.sigma_alpha = self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha
@@ -408,7 +405,7 @@ class _Track:
                 self._measure(g, st, frame, retry_dt=t - t_prev)
         if lost:
             if st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched):
-                self.state.x, self.state.P = saved
+                self.state.restore(saved)
                 for f, (a, b, d) in zip(self.features, counts):
                     f.attempts, f.successes, f.drift = a, b, d
                 st.relocalised = False
@@ -431,7 +428,7 @@ class _Track:
         if not lost:
             self._adapt_impulse(t)
         if frame % cfg.psd_check_every == 0:
-            self.state.P = check_covariance(self.state.P, f"frame {frame}", cfg.psd_rel_tol, True, self.state.describe)
+            self.state.check(f"frame {frame}", cfg.psd_rel_tol)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
 
     # ------------------------------------------------------------------ measurement
@@ -596,15 +593,14 @@ class _Track:
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses,
             # kept if it finds more (after a long gap the grown ellipses can pass searching).
-            cd = self.state.cam_dim
-            first, P_cam = (pred, S, r_scale, visible, feats, z), self.state.P[:cd, :cd].copy()
+            first, before = (pred, S, r_scale, visible, feats, z), self.state.snapshot(camera_only=True)
             self._grow_impulse(retry_dt, s.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self._search(g)
             if np.isfinite(z).all(axis=1).sum() > n_found:
                 st.retried = True
             else:
                 pred, S, r_scale, visible, feats, z = first
-                self.state.P[:cd, :cd] = P_cam
+                self.state.restore(before)
             m = len(pred.ks)
         st.predicted = visible
         edged = self._known_by_edges(g, feats, z, pred.uv) if s.known_edges else np.zeros(m, bool)
@@ -664,8 +660,7 @@ class _Track:
         taken impulses ``gain`` times larger: ``G P_n G^T`` added ``gain^2 - 1`` times more."""
         cd = self.state.cam_dim
         _, _, G = f_and_dfdx_dfdn(self.state.x[:cd], dt)
-        extra = G @ noise_covariance(dt, self.motion_cfg, math.sqrt(gain * gain - 1.0)) @ G.T
-        self.state.P[:cd, :cd] += 0.5 * (extra + extra.T)
+        self.state.add_camera_noise(G @ noise_covariance(dt, self.motion_cfg, math.sqrt(gain * gain - 1.0)) @ G.T)
 
     def _votes(self, ks: np.ndarray, edged: np.ndarray | None = None) -> np.ndarray:
         """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature, at
@@ -822,9 +817,7 @@ class _Track:
         from the drifting poses, removed. A turn goes on (the templates often miss in one): the
         filter's angular velocity, which the drift leaves nearly right, is a better guess than
         rest; its linear velocity is the drift's own and is reset with the pose."""
-        turning = self.state.x[W_SLICE].copy()
-        self.slam.restart_camera(self.state, hyp)
-        self.state.x[W_SLICE] = turning
+        self.slam.restart_camera(self.state, hyp, w=self.state.x[W_SLICE].copy())
         drifted = [k for k, f in enumerate(self.features) if not f.known and f.first_frame > self.target_seen]
         if drifted:
             self._remove(drifted, st)
@@ -1274,44 +1267,25 @@ class MonoSLAM:
 
     # -------------------------------------------------------------- start-up
     def _camera_state(self, hyp: PoseHypothesis, t: float) -> State:
-        x_v, P = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, self.cam_dim)
+        """A state of the camera alone at the start-up pose ``hyp``; with bias states, the biases
+        a still stretch before the first frame gave (kept in ``still``)."""
+        q = quat_from_rotation(hyp.R_world_cam)
+        still = None
         if self.cam_dim >= CAMERA_DIM_BIASED:
-            for sl, s0 in ((BG_SLICE, self.cfg.gyro_bias_sigma0), (BA_SLICE, self.cfg.accel_bias_sigma0)):
-                P[sl, sl] = np.eye(3) * s0**2
-            if self.cam_dim == CAMERA_DIM_TIMED:
-                x_v[TD_INDEX], P[TD_INDEX, TD_INDEX] = self.cfg.time_offset0, self.cfg.time_offset_sigma0**2
-            # A still stretch before the first frame gives the biases: the gyro's directly, the
-            # accelerometer's through the start's attitude, correlated with it (as a new
-            # feature is with the camera), so that refining the attitude refines it.
-            still = still_biases(self.imu.rows, t, x_v[3:7], self.settings, self.cfg)
+            still = still_biases(self.imu.rows, t, q, self.settings, self.cfg)
             if still is not None:
-                x_v[BG_SLICE], P[BG_SLICE, BG_SLICE] = still.b_g, np.eye(3) * still.var_g
-                J = np.zeros((3, self.cam_dim))
-                J[:, 3:7] = still.J_q
-                P[BA_SLICE, :] = 0.0
-                P[:, BA_SLICE] = 0.0
-                P_ax = J @ P
-                x_v[BA_SLICE] = still.b_a
-                P[BA_SLICE, :] = P_ax
-                P[:, BA_SLICE] = P_ax.T
-                P[BA_SLICE, BA_SLICE] = J @ P_ax.T + np.eye(3) * still.var_f
                 self.still = still
+        x_v, P = camera_prior(self.cam_dim, hyp.r, q, pose_covariance(q, hyp.cov), self.settings.init_sigma_v,
+                              self.settings.init_sigma_w, self.cfg, still)
         return State.from_camera(x_v, P)
 
-    def restart_camera(self, state: State, hyp: PoseHypothesis) -> None:
-        """Put the camera at a pose found against the map (re-localisation), at rest, with no
-        correlation to the map; bias estimates are kept."""
+    def restart_camera(self, state: State, hyp: PoseHypothesis, w: np.ndarray | None = None) -> None:
+        """Put the camera at a pose found against the map (re-localisation), at rest (or turning
+        at ``w`` (3,), rad/s), with no correlation to the map; bias estimates are kept."""
         x_v, P_vv = hyp.camera_prior(self.settings.init_sigma_v, self.settings.init_sigma_w, state.cam_dim)
-        cd = state.cam_dim
-        x = state.x.copy()
-        x[:13] = x_v[:13]
-        P = state.P.copy()
-        P[:13, :] = 0.0
-        P[:, :13] = 0.0
-        P[:13, :13] = P_vv[:13, :13]
-        if cd > 13:
-            P[13:cd, 13:cd] = state.P[13:cd, 13:cd]
-        state.x, state.P = x, P
+        if w is not None:
+            x_v[W_SLICE] = w
+        state.restart_camera(x_v, P_vv)
 
     def start(self, image: np.ndarray, t: float, target: Target) -> RefinedTarget:
         """Fix the world frame from the known target in the first image: its clicked pixels are
