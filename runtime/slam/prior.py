@@ -61,3 +61,14 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
 UNKNOWN_POSE_VARIANCES = np.r_[np.full(3, 1.0), np.full(4, 0.25)]
 UNKNOWN_SIGMA_V = 0.3
 UNKNOWN_SIGMA_W = 0.5
+
+
+def restart_at(state, hyp, sigma_v: float, sigma_w: float, w: np.ndarray | None = None) -> None:
+    """Put the camera of ``state`` at a pose ``hyp`` (startup.PoseHypothesis) found against the
+    map (re-localisation, the target's re-acquisition), at rest (or turning at ``w`` (3,),
+    rad/s) with velocity standard deviations ``sigma_v``, ``sigma_w``, with no correlation to the
+    map; bias estimates are kept."""
+    x_v, P_vv = hyp.camera_prior(sigma_v, sigma_w, state.cam_dim)
+    if w is not None:
+        x_v[10:13] = w
+    state.restart_camera(x_v, P_vv)

@@ -250,27 +250,25 @@ def test_votes_choose_the_hypothesis_reliable_features_support():
 
 
 def test_the_tracker_votes_by_each_features_record():
-    """The tracker's votes (system._Track._votes): inlier matches + 1 over searches + 2, so a
+    """The tracker's votes (measure.Measurement.votes): inlier matches + 1 over searches + 2, so a
     feature at its first search votes a third and one matched in 60 of 60 nearly 1, and the
     votes follow the features asked for, in their order; a corner the target's sides placed
     this frame votes ``known_vote``."""
-    from runtime.slam.system import _Track
+    from runtime.slam.config import MapSettings
+    from runtime.slam.measure import Measurement
     from runtime.slam.templates import MapFeature
 
-    track = _Track.__new__(_Track)
+    measurement = Measurement(None, MapSettings(), 1.0, 0, None)
     records = [(1, 0), (60, 60), (10, 5), (4, 1)]
-    track.features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
-                      for i, (a, s) in enumerate(records)]
-    np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
-    np.testing.assert_allclose(track._votes(np.array([3, 1])), [1 / 3, 61 / 62])
+    features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
+                for i, (a, s) in enumerate(records)]
+    np.testing.assert_allclose(measurement.votes(features, np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1])), [1 / 3, 61 / 62])
     # A target corner placed by the target's sides this frame votes MapSettings.known_vote.
-    from types import SimpleNamespace
-
-    from runtime.slam.config import MapSettings
-    track.slam = SimpleNamespace(settings=MapSettings(known_vote=5.0))
-    np.testing.assert_allclose(track._votes(np.array([3, 1, 2]), np.array([True, False, False])),
+    measurement.settings = MapSettings(known_vote=5.0)
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1, 2]), np.array([True, False, False])),
                                [5.0, 61 / 62, 0.5])
-    np.testing.assert_allclose(track._votes(np.array([3, 1]), np.array([False, False])), [1 / 3, 61 / 62])
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1]), np.array([False, False])), [1 / 3, 61 / 62])
     with pytest.raises(ValueError, match="known_vote"):
         MapSettings(known_vote=0.0)                   # RANSAC takes positive votes only
 
