@@ -143,8 +143,7 @@ class Measurement:
         fi = np.flatnonzero(found)
         sub = pred.take(fi)
         rng = np.random.default_rng((self.seed, frame))
-        res = one_point_ransac(m.state, sub.ks, z[fi], cam, self.sigma_pixel**2, sub, S[fi],
-                               s.ransac_threshold_px, s.ransac_max_hypotheses, s.ransac_confidence, s.rescue_chi2, rng,
+        res = one_point_ransac(m.state, sub.ks, z[fi], cam, self.sigma_pixel**2, sub, S[fi], s.ransac, rng,
                                r_scale[fi], votes=self.votes(m.features, sub.ks, edged[fi]), accept=accept)
         if res.refused:
             for f in feats:             # the search counted as not made (the votes read it first)
