@@ -175,18 +175,18 @@ class MonoSLAM:
     def map_view(self) -> MapView:
         """A snapshot of the map, the camera and the last search (see :class:`MapView`)."""
         tr = self.track
-        st = tr.state
+        state = tr.state
         Y = tr.world_points()
-        n = st.n_features
-        cov = tr.point_covariances(np.arange(n))
+        n = state.n_features
+        cov = tr.map.point_covariances(np.arange(n))
         r_ids, r_o, r_d, r_depth = [], [], [], []
         for k in range(n):
-            sl = st.feature_slice(k)
-            P = st.P[sl, sl]
-            if st.kinds[k] == INVERSE_DEPTH:
-                y = st.feature(k).copy()
+            sl = state.feature_slice(k)
+            P = state.P[sl, sl]
+            if state.kinds[k] == INVERSE_DEPTH:
+                y = state.feature(k).copy()
                 y[5] = max(y[5], 0.05)
-                m = st.anchors[k] @ inverse_depth.direction_kernel(float(y[3]), float(y[4]))[0]
+                m = state.anchors[k] @ inverse_depth.direction_kernel(float(y[3]), float(y[4]))[0]
                 s_rho = math.sqrt(max(P[5, 5], 0.0))
                 rho_hi, rho_lo = y[5] + 2 * s_rho, y[5] - 2 * s_rho
                 r_ids.append(tr.features[k].id)
@@ -201,7 +201,7 @@ class MonoSLAM:
         return MapView(
             t=float(self.t_prev) if self.t_prev is not None else 0.0, T_world_cam=self.T_world_cam(),
             ids=np.array([f.id for f in tr.features], int), xyz=Y, cov=cov,
-            kinds=tuple(FEATURE_NAMES[k] for k in st.kinds), known=np.array([f.known for f in tr.features], bool),
+            kinds=tuple(FEATURE_NAMES[k] for k in state.kinds), known=np.array([f.known for f in tr.features], bool),
             ray_ids=np.array(r_ids, int), ray_origin=np.array(r_o).reshape(-1, 3),
             ray_direction=np.array(r_d).reshape(-1, 3), ray_depth=np.array(r_depth, float).reshape(-1, 2),
             search=tr.last)
