@@ -61,7 +61,7 @@ class PymooAskTell(AskTell):
 
 
 #: AGE-MOEA2's population: with 28 it reaches random variation's 2520-evaluation hypervolume in
-#: 0.14-0.38 of the evaluations over seeds 0-4, median 0.18; 14 and 40 did worse on seeds 0-2
+#: 0.14-0.38 of the evaluations over seeds 0-4, median 0.18; 14, 21 and 40 did worse on seeds 0-2
 #: (docs/design-sweeps.md).
 AGEMOEA2_POPULATION = 28
 
