@@ -8,7 +8,7 @@
 3. With BENCH_DESIGN_CONVERGENCE=DIR: the convergence fraction per seed (design.convergence;
    the same number as ``wvr design compare``) of DIR/<algorithm>_<seed> against
    DIR/random_<seed>, for the seeds and algorithm given by BENCH_DESIGN_SEEDS (default 0-4) and
-   BENCH_DESIGN_ALGORITHM (default nsga3); missing runs are made (2520 evaluations each).
+   BENCH_DESIGN_ALGORITHM (default: the default sweep's, agemoea2); missing runs are made (2520 evaluations each).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_design.py`` from the repository root.
 """
@@ -97,8 +97,8 @@ def main():
         dask_rates(ctx, int(os.environ["BENCH_DESIGN_DASK"]))
     if os.environ.get("BENCH_DESIGN_CONVERGENCE"):
         seeds = [int(s) for s in os.environ.get("BENCH_DESIGN_SEEDS", "0,1,2,3,4").split(",")]
-        convergence(spec, Path(os.environ["BENCH_DESIGN_CONVERGENCE"]), os.environ.get("BENCH_DESIGN_ALGORITHM", "nsga3"),
-                    seeds)
+        algorithm = os.environ.get("BENCH_DESIGN_ALGORITHM", spec.algorithm)
+        convergence(spec, Path(os.environ["BENCH_DESIGN_CONVERGENCE"]), algorithm, seeds)
 
 
 if __name__ == "__main__":

@@ -32,8 +32,8 @@ from kinematics.progress import progress_bar
 from kinematics.outdir import output_folder
 
 from .problem import EvaluationContext, HeadLayoutProblem, evaluate_batch
-from .search import RandomVariation, nsga3
-from .sweep_file import CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec, dump_spec
+from .search import RandomVariation, agemoea2, nsga3
+from .sweep_file import ALGORITHMS, CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec, dump_spec
 
 #: The kind (kinematics.outdir) of a sweep's folder; it continues its own (--resume).
 SWEEP = "design optimise"
@@ -107,11 +107,13 @@ RANDOM_BATCH = 84
 
 def make_algorithm(name: str, ctx: EvaluationContext, seed: int):
     spec = ctx.spec
+    if name == "agemoea2":
+        return agemoea2(HeadLayoutProblem(ctx), seed)
     if name == "nsga3":
         return nsga3(HeadLayoutProblem(ctx), seed, spec.partitions)
     if name == "random":
         return RandomVariation(spec.xl, spec.xu, RANDOM_BATCH, seed)
-    raise SweepStateError(f"unknown algorithm {name!r}; use 'nsga3' or 'random'")
+    raise SweepStateError(f"unknown algorithm {name!r}; use one of {', '.join(ALGORITHMS)}")
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -315,8 +317,8 @@ def run_options(spec: SweepSpec, evaluations: int | None, seed: int | None,
     if isinstance(budget, bool) or int(budget) != budget or budget < 1:
         raise SweepStateError(f"evaluations = {budget!r}: give a budget of at least 1 evaluation (e.g. 200)")
     algorithm = spec.algorithm if algorithm is None else algorithm
-    if algorithm not in ("nsga3", "random"):
-        raise SweepStateError(f"unknown algorithm {algorithm!r}; use 'nsga3' or 'random'")
+    if algorithm not in ALGORITHMS:
+        raise SweepStateError(f"unknown algorithm {algorithm!r}; use one of {', '.join(ALGORITHMS)}")
     seed = spec.seed if seed is None else seed
     if isinstance(seed, bool) or int(seed) != seed or not 0 <= seed < 2**32:
         raise SweepStateError(f"seed = {seed!r}: give a whole number from 0 to {2**32 - 1}")

@@ -30,6 +30,11 @@ POSITIONS = ("elevation_motor", "pan_motor", "cyclotorsion_motor", "camera")
 VARIABLES = tuple(f"{p}_{c}_m" for p in POSITIONS for c in "xyz")
 
 
+#: The search algorithms (design.search): AGE-MOEA2 is the default, NSGA-III the former one,
+#: random variation the paper's method and the baseline of design.convergence.
+ALGORITHMS = ("agemoea2", "nsga3", "random")
+
+
 class SweepFileError(ValueError):
     """A sweep.toml that cannot be used; the message names the field and the fix."""
 
@@ -149,8 +154,8 @@ def _spec_from_dict(d: dict) -> SweepSpec:
     if rng_deg > travel + 1e-9:
         raise SweepFileError(f"[sweep].range_deg = {rng_deg:g} exceeds the {servo}'s {travel:g} deg travel; use at most {travel:g}")
     algorithm = str(s["algorithm"])
-    if algorithm not in ("nsga3", "random"):
-        raise SweepFileError(f"[sweep].algorithm = {algorithm!r} must be 'nsga3' or 'random'")
+    if algorithm not in ALGORITHMS:
+        raise SweepFileError(f"[sweep].algorithm = {algorithm!r} must be one of {', '.join(map(repr, ALGORITHMS))}")
     bounds = []
     for pos in POSITIONS:
         b = d["bounds"][pos]

@@ -65,7 +65,7 @@ def test_refusals(tmp_path):
 
 @pytest.mark.slow
 def test_sigkill_then_resume_loses_and_repeats_nothing(tmp_path):
-    spec = tiny_spec(28)
+    spec = replace(tiny_spec(28), algorithm="nsga3")     # a population of 7: the kills fall in two batches
     sweep_file = tmp_path / "sweep.toml"
     sweep_file.write_text(dump_spec(spec))
     # The uninterrupted run, for comparison.
@@ -94,6 +94,18 @@ def test_sigkill_then_resume_loses_and_repeats_nothing(tmp_path):
     strip = lambda rs: [{k: v for k, v in row.items() if k != "eval_id"} for row in rs]  # noqa: E731
     assert sorted(strip(rows), key=lambda d: (int(d["batch"]), int(d["index"]))) == \
         sorted(strip(ref_rows), key=lambda d: (int(d["batch"]), int(d["index"])))
+
+
+def test_default_algorithm_resumed_in_a_later_batch_equals_one_run(tmp_path):
+    spec = tiny_spec(40)
+    assert spec.algorithm == "agemoea2"
+    run_sweep(spec, tmp_path / "full", progress=False)
+    run_sweep(spec, tmp_path / "cut", evaluations=30, progress=False)       # stops 2 designs into batch 1
+    run_sweep(spec, tmp_path / "cut", resume=True, progress=False)
+    strip = lambda rs: [{k: v for k, v in row.items() if k != "eval_id"} for row in rs]  # noqa: E731
+    full, cut = read_rows(tmp_path / "full" / "evaluations.csv"), read_rows(tmp_path / "cut" / "evaluations.csv")
+    assert len(full) == 40 and {r["batch"] for r in full} == {"0", "1"}
+    assert strip(cut) == strip(full)
 
 
 @pytest.mark.slow
