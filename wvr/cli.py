@@ -410,6 +410,16 @@ def cmd_slam(args) -> int:
 MIN_COVERAGE = 0.9
 
 
+def _default_alignment(result: Path) -> str:
+    """sim3 for a run whose stats.json says its scale is arbitrary, else none (a metric run's
+    frame and scale are the world's)."""
+    try:
+        scale = json.loads((result / "stats.json").read_text()).get("totals", {}).get("scale", "target")
+    except (OSError, ValueError, AttributeError):
+        scale = "target"
+    return "sim3" if scale == "arbitrary" else "none"
+
+
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
     from runtime.sequence import open_sequence, read_trajectory
@@ -428,8 +438,11 @@ def cmd_eval(args) -> int:
     if e.matched < MIN_COVERAGE * len(est):
         print(f"warning: the ground truth covers only {e.matched} of the {len(est)} estimated poses "
               f"({100 * e.matched / len(est):.0f}%); every figure below describes that part only", file=sys.stderr)
-    print(f"ATE (no alignment): RMSE {100 * e.ate_rmse_m:.2f} cm, max {100 * e.ate_max_m:.2f} cm")
-    print(f"ATE (SE3-aligned):  RMSE {100 * e.ate_aligned_rmse_m:.2f} cm, max {100 * e.ate_aligned_max_m:.2f} cm")
+    align = args.align or _default_alignment(result)
+    for name, label in (("none", "no alignment"), ("se3", "SE3-aligned"), ("sim3", "Sim3-aligned")):
+        rmse, worst = e.ate(name)
+        print(f"{'*' if name == align else ' '} ATE ({label}):{' ' * (14 - len(label))}RMSE {100 * rmse:.2f} cm, "
+              f"max {100 * worst:.2f} cm" + (f", scale x{e.sim3_scale:.4f}" if name == "sim3" else ""))
     if math.isfinite(e.rpe_trans_rmse_m):
         print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
     else:
@@ -931,6 +944,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
+    ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
+                     "default: sim3 when the run's scale is arbitrary, none when metric)")
     ev2.set_defaults(func=cmd_eval)
 
     stn = sub.add_parser("station", help="the remote operator's web station: live 3D view and camera view, "
