@@ -43,6 +43,7 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q -n auto --dist loadfile tests
 	$(PY) -m pytest -q --nbmake notebooks
+	d=$$(mktemp -d); NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet --site-dir $$d; s=$$?; rm -rf $$d; exit $$s
 
 bench: setup
 	$(PY) benchmarks/run.py

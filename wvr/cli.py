@@ -463,6 +463,24 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_convert(args) -> int:
+    from runtime.datasets import convert_euroc, convert_kitti
+
+    if args.format == "euroc":
+        seq = convert_euroc(args.src, args.out, groundtruth=args.groundtruth, copy=args.copy)
+    else:
+        seq = convert_kitti(args.src, args.out, poses=args.poses, copy=args.copy)
+    for note in seq.notes:
+        print(f"note: {note}")
+    span = seq.timestamps[-1] - seq.timestamps[0]
+    print(f"{len(seq)} frames over {span:.2f} s, {seq.camera.width}x{seq.camera.height} {seq.camera.model}"
+          + (f"; {len(seq.imu)} IMU samples (camera frame)" if seq.imu is not None else "; no IMU")
+          + (f"; {len(seq.groundtruth)} ground-truth poses" if seq.groundtruth is not None else "; no ground truth"))
+    print(f"wrote {Path(args.out) / 'rgb.txt'} ({'copies of' if args.copy else 'links to'} the images), camera.toml"
+          + (", imu.txt" if seq.imu is not None else "") + (", groundtruth.txt" if seq.groundtruth is not None else ""))
+    return 0
+
+
 # ------------------------------------------------------------------ the hardware rig
 
 def _degrees3(text: str) -> np.ndarray:
@@ -947,6 +965,21 @@ def build_parser() -> argparse.ArgumentParser:
     ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
                      "default: sim3 when the run's scale is arbitrary, none when metric)")
     ev2.set_defaults(func=cmd_eval)
+    cv = sub.add_parser("convert", help="write a public data set (EuRoC, KITTI odometry) as a sequence folder in our layout")
+    cvsub = cv.add_subparsers(dest="format", metavar="FORMAT", required=True)
+    cve = cvsub.add_parser("euroc", help="an EuRoC / ASL mav0 folder: cam0, imu0 into the camera frame, the camera's ground truth")
+    cve.add_argument("src", help="the mav0 folder (or the folder holding mav0)")
+    cve.add_argument("--groundtruth", metavar="FILE",
+                     help="the camera's ground truth in ORB-SLAM3's MH01_GT.txt style (CSV: ns, tx, ty, tz, qw, qx, qy, qz) "
+                          "instead of state_groundtruth_estimate0 (the body's)")
+    cvk = cvsub.add_parser("kitti", help="a KITTI odometry sequence: image_0, times.txt, calib.txt's P0, poses")
+    cvk.add_argument("src", help="the sequence folder (image_0/, times.txt, calib.txt)")
+    cvk.add_argument("--poses", metavar="FILE",
+                     help="the poses file (default: SRC/poses/NN.txt, or the data set's ../../poses/NN.txt)")
+    for c in (cve, cvk):
+        c.add_argument("--out", required=True, help="the new sequence folder")
+        c.add_argument("--copy", action="store_true", help="copy the images (default: symbolic links to them)")
+        c.set_defaults(func=cmd_convert)
 
     stn = sub.add_parser("station", help="the remote operator's web station: live 3D view and camera view, "
                          "click to saccade and fixate, labels, JSON API")

@@ -14,7 +14,8 @@ from tqdm import tqdm
 
 from kinematics.camera import CameraIntrinsics, undistort
 
-from ..sequence import SequenceError, open_sequence, write_trajectory
+from ..datasets import open_any
+from ..sequence import SequenceError, write_trajectory
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
@@ -131,7 +132,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
 
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"--max-frames {max_frames}: give at least 1 frame")
-    seq = open_sequence(seq_path)
+    seq = open_any(seq_path)    # EuRoC and KITTI folders as shipped, or our layout
     if len(seq) == 0:
         raise SequenceError(f"{seq.root}/rgb.txt lists no images; a sequence needs at least one frame")
     check_lens_invertible(seq.camera)
