@@ -4,8 +4,9 @@ annotated frames, video.mp4 and a saved map."""
 from __future__ import annotations
 
 import csv
+import itertools
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,7 @@ from kinematics.camera import CameraIntrinsics, undistort
 from ..datasets import open_any
 from ..sequence import SequenceError, write_trajectory
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
+from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
 from .measurement import predict, predict_points
@@ -55,6 +57,11 @@ class SlamRun:
     #: that state): an IMU sample stamped t was taken at camera time t - offset.
     imu_clock_offset_s: float | None = None
     imu_clock_offset_sd_s: float | None = None
+    #: What fixed the map's unit: "target", "map", "depth" or "arbitrary" (wvr eval's default alignment).
+    scale: str = "target"
+    #: Frames before the start (natural features: no view to start from yet), given no pose, and why.
+    frames_before_start: int = 0
+    start_waits: dict = field(default_factory=dict)
 
 
 def _clock_offset(state) -> dict:
@@ -122,6 +129,49 @@ def write_map_csv(path: Path, slam: MonoSLAM) -> None:
                         feat.first_frame, int(feat.known), feat.successes, feat.attempts])
 
 
+def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
+    """Feed frames (the first, ``f``, then ``frames``: an iterator of (index, Frame)) to a natural
+    start-up: the depth start where the sequence has depth images, else the two-view start.
+    Returns (NaturalStart, [(index, Frame)] from its reference frame to the accepting one).
+    Counts each reason it waited in ``waits``. Raises SlamStartError when the frames run out."""
+    from .natural_start import StartWait, TwoViewStart, depth_start
+
+    two_view = TwoViewStart(slam.cam)
+    kept: list = []
+    said = None
+    entry = (0, f)
+    while True:
+        i, f = entry
+        if f.image is None:
+            waits["unreadable frame"] = waits.get("unreadable frame", 0) + 1
+            kept.append(entry)                      # replayed as a skipped frame
+        else:
+            g = grey(f.image)
+            depth = seq.depth(i) if getattr(seq, "depth_paths", None) is not None else None
+            if depth is not None:
+                r = depth_start(slam.cam, g, depth, i)
+                kept = [entry]
+            else:
+                r = two_view.add(g, i, f.t)
+                kept = [e for e in kept if two_view.ref_frame is not None and e[0] >= two_view.ref_frame] + [entry]
+            if not isinstance(r, StartWait):
+                return r, [e for e in kept if e[0] >= r.frame]
+            key = r.reason.split(" (")[0].split(":")[0]
+            waits[key] = waits.get(key, 0) + 1
+            if progress and key != said and key != "reference frame taken; waiting for parallax":
+                print(f"slam: waiting to start at frame {i}: {r.reason}")
+                said = key
+        try:
+            entry = next(frames)
+        except StopIteration:
+            entry = None
+        if entry is None or entry[0] >= n:
+            why = max(waits, key=waits.get) if waits else "no frames"
+            raise SlamStartError(f"{seq.root}: no start could be made from natural features in {i + 1} frames "
+                                 f"(mostly: {why}); give a target.toml or a saved map (--map), or record the camera "
+                                 "moving sideways over a textured scene")
+
+
 def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = None, video: bool = False,
              cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings(), progress: bool = True,
              save_map: str | Path | None = None, map_path: str | Path | None = None, seed: int = 0) -> SlamRun:
@@ -137,9 +187,13 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         raise SequenceError(f"{seq.root}/rgb.txt lists no images; a sequence needs at least one frame")
     check_lens_invertible(seq.camera)
     saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
-    if saved is None and seq.target is None:
-        raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame "
-                            "(or from a saved map: --map FILE)")
+    natural = saved is None and seq.target is None
+    if natural and seq.imu is not None and settings.use_imu:
+        # The map's unit is arbitrary or the depth's, and its frame the first camera's, which the
+        # IMU's gravity does not know: camera only (the IMU's scale and gravity are not used yet).
+        settings = replace(settings, use_imu=False)
+        if progress:
+            print("slam: natural start: the IMU is not used (camera only)")
     out = Path(out)
     writer = None
     slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
@@ -148,14 +202,25 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     times, poses = [], []
     skipped = 0
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
-    frames = seq.frames()
+    frames = enumerate(seq.frames())
     said = 0
+    waits: dict[str, int] = {}
     # The start comes before the progress bar: a target that cannot start SLAM is one line.
-    f = next(frames)
+    i0, f = next(frames)
     if saved is not None:
         slam.start_from_map(saved, f.t)
         if f.image is not None:
             slam.process(f.image, f.t)
+    elif natural:
+        # Frames are taken until a start can be made; those from the start's reference frame on
+        # are replayed, those before it get no pose.
+        start, replay = wait_for_natural_start(slam, seq, f, frames, n, waits, progress)
+        i0, f = replay[0]
+        slam.start_natural(f.image, f.t, start)
+        frames = itertools.chain(replay[1:], frames)
+        if progress:
+            print(f"slam: started at frame {i0} (t = {f.t:.3f} s) from {len(slam.features)} natural features, "
+                  f"scale: {start.scale}" + (f"; {i0} frames before it" if i0 else ""))
     else:
         if f.image is None:
             raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
@@ -166,10 +231,10 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
     if video:
         (out / "video").mkdir(exist_ok=True)
-    bar = tqdm(total=n, initial=1, desc="slam", unit="frame", disable=not progress)
-    for i in range(n):
-        if i > 0:
-            f = next(frames)
+    bar = tqdm(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
+    for i in range(i0, n):
+        if i > i0:
+            _, f = next(frames)
             bar.update(1)
             if f.image is None:
                 slam.skip(f.t, f.problem or "unreadable")
@@ -215,7 +280,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     first = next((s.t for s in slam.stats if not s.lost), None)     # first frame in the map
     lost_frames = sum(1 for s in slam.stats if s.lost and first is not None and s.t > first) if first is not None \
         else len(slam.stats)
-    dt = np.diff(seq.timestamps[:n])
+    dt = np.diff(seq.timestamps[i0:n])
     gaps = int((dt > 1.5 * np.median(dt)).sum()) if len(dt) else 0
     result = SlamRun(
         frames=len(slam.stats), skipped=skipped, features=len(slam.features),
@@ -230,6 +295,6 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
         imu_frames=sum(1 for s in proc if s.imu), frame_gaps=gaps, longest_interval_s=float(dt.max()) if len(dt) else 0.0,
         imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
-        **_clock_offset(slam.state))
+        **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits)
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
     return result
