@@ -411,13 +411,14 @@ MIN_COVERAGE = 0.9
 
 
 def _default_alignment(result: Path) -> str:
-    """sim3 for a run whose stats.json says its scale is arbitrary, else none (a metric run's
-    frame and scale are the world's)."""
+    """The alignment a run's stats.json scale calls for: none where a target or a saved map fixed
+    the world's frame and scale, se3 where the scale is metric but the frame the first camera's
+    (depth, imu), sim3 where the scale is arbitrary."""
     try:
         scale = json.loads((result / "stats.json").read_text()).get("totals", {}).get("scale", "target")
     except (OSError, ValueError, AttributeError):
         scale = "target"
-    return "sim3" if scale == "arbitrary" else "none"
+    return {"arbitrary": "sim3", "depth": "se3", "imu": "se3"}.get(scale, "none")
 
 
 def cmd_eval(args) -> int:
@@ -963,7 +964,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
     ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
-                     "default: sim3 when the run's scale is arbitrary, none when metric)")
+                     "default from the run's scale: none after a target or a saved map, se3 after a depth or IMU "
+                     "scale, sim3 when arbitrary)")
     ev2.set_defaults(func=cmd_eval)
     cv = sub.add_parser("convert", help="write a public data set (EuRoC, KITTI odometry) as a sequence folder in our layout")
     cvsub = cv.add_subparsers(dest="format", metavar="FORMAT", required=True)
