@@ -62,6 +62,9 @@ class SlamRun:
     #: Frames before the start (natural features: no view to start from yet), given no pose, and why.
     frames_before_start: int = 0
     start_waits: dict = field(default_factory=dict)
+    #: The IMU's estimate of a natural start's scale (metres per map unit) and gravity, over the
+    #: first 3 s of the run and over all of it, and whether it was used (scale_from_imu).
+    imu_scale: dict | None = None
 
 
 def _clock_offset(state) -> dict:
@@ -109,12 +112,13 @@ def _annotate(image: np.ndarray, slam: MonoSLAM) -> np.ndarray:
     return img
 
 
-def write_map_csv(path: Path, slam: MonoSLAM) -> None:
+def write_map_csv(path: Path, slam: MonoSLAM, R_out_world: np.ndarray = np.eye(3), scale: float = 1.0) -> None:
     """One row per map feature: its id, kind, point (world, m) and the point's 3x3 covariance
     (an inverse-depth feature's through its conversion Jacobian), first frame, whether a target
-    point, inlier matches and searches."""
+    point, inlier matches and searches. ``R_out_world``, ``scale``: the similarity (about the
+    origin) that takes the filter's world to the one written (an IMU's scale and gravity)."""
     st = slam.state
-    Y = slam.world_points()
+    Y = scale * slam.world_points() @ R_out_world.T
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["id", "kind", "x", "y", "z", *[f"P{i}{j}" for i in range(3) for j in range(3)], "first_frame",
@@ -125,8 +129,39 @@ def write_map_csv(path: Path, slam: MonoSLAM) -> None:
             if st.kinds[k] == INVERSE_DEPTH:
                 _, J = inverse_depth.to_point(st.feature(k), st.anchors[k])
                 P = J @ P @ J.T
+            P = scale**2 * R_out_world @ P @ R_out_world.T
             w.writerow([feat.id, FEATURE_NAMES[st.kinds[k]], *map(repr, map(float, Y[k])), *map(repr, map(float, P.ravel())),
                         feat.first_frame, int(feat.known), feat.successes, feat.attempts])
+
+
+#: The IMU's scale is used when the camera accelerated this much (RMS, m/s^2) and the estimate's
+#: relative standard deviation is under IMU_SCALE_MAX_SIGMA.
+IMU_SCALE_MIN_EXCITATION = 0.2
+IMU_SCALE_MAX_SIGMA = 0.03
+IMU_SCALE_EARLY_S = 3.0
+
+
+def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
+    """The scale and gravity of a natural start's map from the camera's poses (n,) s, (n, 4, 4) and
+    the sequence's IMU (imu_scale.estimate_scale): over the first IMU_SCALE_EARLY_S seconds and over
+    the whole run; the whole run's is used when observable. None when the run is too short."""
+    from .imu_scale import estimate_scale, gravity_aligned
+
+    R, p = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
+    full = estimate_scale(t, p, R, imu.t, imu.gyro, imu.accel)
+    if full is None:
+        return None
+    early = t <= t[0] + IMU_SCALE_EARLY_S
+    first = estimate_scale(t[early], p[early], R[early], imu.t, imu.gyro, imu.accel)
+    usable = full.excitation >= IMU_SCALE_MIN_EXCITATION and full.sigma_rel <= IMU_SCALE_MAX_SIGMA
+    said = (f"scale from the IMU: {full.scale:.4g} m per map unit (+- {100 * full.sigma_rel:.1f}%, the camera's "
+            f"acceleration {full.excitation:.2f} m/s^2 RMS)" + ("" if usable else
+            "; too weakly observed, the scale stays arbitrary"))
+    return {"usable": bool(usable), "scale": full.scale, "sigma_rel": full.sigma_rel, "excitation_m_s2": full.excitation,
+            "g_world": full.g_world.tolist(), "accel_bias": full.accel_bias.tolist(),
+            "R_up_world": gravity_aligned(full.g_world).tolist(),
+            "scale_first_3s": first.scale if first is not None else None,
+            "sigma_rel_first_3s": first.sigma_rel if first is not None else None, "said": said}
 
 
 def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
@@ -266,12 +301,25 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     bar.close()
     if writer is not None:
         writer.release()
+    # A natural start's arbitrary unit, made metric (and the frame turned upright) by the IMU.
+    R_out, s_out, imu_scale = np.eye(3), 1.0, None
+    if natural and slam.scale_source == "arbitrary" and seq.imu is not None and len(times) > 2:
+        imu_scale = scale_from_imu(np.array(times), np.array(poses), seq.imu)
+        if imu_scale is not None and imu_scale["usable"]:
+            R_out, s_out = np.array(imu_scale["R_up_world"]), imu_scale["scale"]
+            slam.scale_source = "imu"
+        if progress:
+            print("slam: " + imu_scale["said"] if imu_scale is not None else
+                  "slam: the IMU cannot give the scale (too short a run): the scale stays arbitrary")
     if times:
-        write_trajectory(out / "trajectory.tum", np.array(times), np.array(poses),
+        T = np.array(poses)
+        T[:, :3, :3] = R_out @ T[:, :3, :3]
+        T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
+        write_trajectory(out / "trajectory.tum", np.array(times), T,
                          header="MonoSLAM camera-to-world poses (optical frame), TUM order")
     else:
         (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
-    write_map_csv(out / "map.csv", slam)
+    write_map_csv(out / "map.csv", slam, R_out, s_out)
     if save_map is not None:
         map_io.save_map(save_map, slam)
     per_frame = [asdict(s) for s in slam.stats]
@@ -295,6 +343,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
         imu_frames=sum(1 for s in proc if s.imu), frame_gaps=gaps, longest_interval_s=float(dt.max()) if len(dt) else 0.0,
         imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
-        **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits)
+        **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits,
+        imu_scale={k: v for k, v in imu_scale.items() if k != "said"} if imu_scale else None)
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
     return result
