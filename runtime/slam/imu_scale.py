@@ -114,42 +114,59 @@ def estimate_scale(t: np.ndarray, p: np.ndarray, R: np.ndarray, t_imu: np.ndarra
         Bb.append(0.5 * Rk[i] * d12**2 * d23 - 0.5 * Rk[i + 1] * d23**2 * d12 - Rk[i] * d12**2 * d23)
         half.append(0.5 * d12 * d23 * (d12 + d23))
     A, b, Bb = np.vstack(A), np.concatenate(b), np.vstack(Bb)
-    x, *_ = np.linalg.lstsq(A, b, rcond=None)
-    s, g = float(x[0]), x[1:]
-    if not np.isfinite(s) or np.linalg.norm(g) < 1e-6:
+    lam, beta = A[:, 0], A[:, 1:]
+    # The map's positions are the noisy side (a filter's, differenced twice); the IMU's side is
+    # nearly exact over these intervals. So lam is the observation and the unknowns are k = 1/s and
+    # g: lam = k (gam + Bb b_a - beta g), where least squares is unbiased (regressing the IMU on
+    # the positions instead would shrink s by the positions' noise, errors-in-variables).
+    x, *_ = np.linalg.lstsq(np.column_stack([b, -beta]), lam, rcond=None)
+    k = float(x[0])
+    if not np.isfinite(k) or abs(k) < 1e-12:
         return None
-    # Gravity's magnitude known: Gauss-Newton over s, g's direction (two angles) and the
+    g = x[1:] / k
+    if np.linalg.norm(g) < 1e-6:
+        return None
+    # Gravity's magnitude known: Gauss-Newton over k, g's direction (two angles) and the
     # accelerometer's bias, the bias held near zero by a prior of ``bias_sigma`` (it is observed
-    # only as the camera turns). The residuals' scale (for the prior's weight) from the fit without it.
+    # only as the camera turns); the prior's weight from the residuals of the fit without it.
     g = g / np.linalg.norm(g) * GRAVITY_M_S2
     b_a = np.zeros(3)
     w_prior = 0.0
+
+    def residual(k, g, b_a):
+        return lam - k * (b + Bb @ b_a - beta @ g)
+
     for it in range(2):
-        for _ in range(15):
-            r = A @ np.concatenate([[s], g]) - b - Bb @ b_a
+        for _ in range(20):
+            r = residual(k, g, b_a)
             u = np.cross(g, [1.0, 0.0, 0.0] if abs(g[0]) < 0.9 * GRAVITY_M_S2 else [0.0, 1.0, 0.0])
             u /= np.linalg.norm(u)
             v = np.cross(g / GRAVITY_M_S2, u)
-            Jg = -skew(g) @ np.column_stack([u, v])
-            J = np.column_stack([A[:, 0], A[:, 1:] @ Jg, -Bb if it else np.zeros_like(Bb)])
+            Jg = k * beta @ (-skew(g) @ np.column_stack([u, v]))
+            J = np.column_stack([-(b + Bb @ b_a - beta @ g), Jg, -k * Bb if it else np.zeros_like(Bb)])
             Jp = np.hstack([np.zeros((3, 3)), w_prior * np.eye(3)])
             dx, *_ = np.linalg.lstsq(np.vstack([J, Jp]), -np.concatenate([r, w_prior * b_a]), rcond=None)
-            s += dx[0]
+            k += dx[0]
             g = _so3_exp(u * dx[1] + v * dx[2]) @ g
             b_a = b_a + dx[3:]
-            if np.abs(dx).max() < 1e-10:
+            if np.abs(dx).max() < 1e-12:
                 break
-        sigma_r = float(np.sqrt(np.mean(np.square(A @ np.concatenate([[s], g]) - b - Bb @ b_a))))
-        w_prior = sigma_r / bias_sigma
-    r = A @ np.concatenate([[s], g]) - b - Bb @ b_a
-    J = np.vstack([np.column_stack([A[:, 0], A[:, 1:] @ Jg, -Bb]), np.hstack([np.zeros((3, 3)), w_prior * np.eye(3)])])
+        # The prior's weight: the bias's residual columns carry k, so a bias of bias_sigma weighs
+        # as much as one residual's spread.
+        sigma_r = float(np.sqrt(np.mean(np.square(residual(k, g, b_a)))))
+        w_prior = sigma_r / (bias_sigma * abs(k))
+    r = residual(k, g, b_a)
+    J = np.vstack([np.column_stack([-(b + Bb @ b_a - beta @ g), k * beta @ (-skew(g) @ np.column_stack([u, v])),
+                                    -k * Bb]),
+                   np.hstack([np.zeros((3, 3)), w_prior * np.eye(3)])])
     dof = max(len(r) - 6, 1)
     cov = np.linalg.pinv(J.T @ J) * float(r @ r) / dof
+    s = 1.0 / k
+    A = np.column_stack([lam, beta])
     # The camera's own acceleration (metric), RMS: lam is its second difference in map units.
     lam_norm = np.linalg.norm(A[:, 0].reshape(-1, 3), axis=1) / np.array(half)
     excitation = float(abs(s) * np.sqrt(np.mean(lam_norm**2)))
-    return ScaleEstimate(s, g, float(np.sqrt(max(cov[0, 0], 0.0)) / abs(s)) if s else float("inf"), len(tk) - 2,
-                         excitation, b_a)
+    return ScaleEstimate(s, g, float(np.sqrt(max(cov[0, 0], 0.0)) / abs(k)), len(tk) - 2, excitation, b_a)
 
 
 def gravity_aligned(g_world: np.ndarray) -> np.ndarray:
