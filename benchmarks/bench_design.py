@@ -1,80 +1,104 @@
-"""Design sweep benchmarks.
+"""Design sweep benchmarks (issue 48).
 
-1. Evaluations per second on one core, and with a 2-worker Dask LocalCluster (speed-up ratio).
-2. Hypervolume of NSGA-III against the paper's random-variation method at equal budgets, over
-   several seeds (median): both fronts normalised by the ideal and nadir of their union, so the
-   two numbers are directly comparable; Monte Carlo HV with a shared sample set.
+1. Evaluations per second on one core: the batched, compiled evaluation (design.problem.
+   evaluate_batch) alternated with the old code kept in tests/design/reference_criteria.py, in
+   rounds, in one process; the ratio of their median rates. Wall-clock and CPU time both.
+2. With BENCH_DESIGN_DASK=N (designs, e.g. 20000): evaluations per second on a Dask LocalCluster
+   of 1 and of 2 workers, each task 16 designs, and the scaling.
+3. With BENCH_DESIGN_CONVERGENCE=DIR: the convergence fraction per seed (design.convergence;
+   the same number as ``wvr design compare``) of DIR/<algorithm>_<seed> against
+   DIR/random_<seed>, for the seeds and algorithm given by BENCH_DESIGN_SEEDS (default 0-4) and
+   BENCH_DESIGN_ALGORITHM (default nsga3); missing runs are made (2520 evaluations each).
 
-Environment: BENCH_DESIGN_EVALS (budget per run, default 2520 = 30 NSGA-III generations; at 840
-random variation still leads, NSGA-III pulls ahead later),
-BENCH_DESIGN_SEEDS (default 3).
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_design.py`` from the repository root.
 """
 
 import os
-import tempfile
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from design.pareto import hypervolume_mc, non_dominated, normalise
-from design.problem import EvaluationContext, evaluate_design
-from design.sweep import open_client, run_sweep
-from design.sweep_file import load_sweep
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "design")]   # this checkout, and the old code kept in its tests
+
+import reference_criteria as RC  # noqa: E402
+from design.convergence import fraction_to_match, read_evaluations  # noqa: E402
+from design.layout import head_from_variables  # noqa: E402
+from design.problem import EvaluationContext, evaluate_batch  # noqa: E402
+from design.sweep import open_client, run_sweep  # noqa: E402
+from design.sweep_file import load_sweep  # noqa: E402
 
 
-def evals_per_second(ctx, X, client=None):
-    t0 = time.perf_counter()
-    if client is None:
-        for x in X:
-            evaluate_design(x, ctx)
-    else:
-        ctx_f = client.scatter(ctx, broadcast=True)
-        client.gather(client.map(evaluate_design, list(X), ctx=ctx_f, pure=False))
-    return len(X) / (time.perf_counter() - t0)
+def rate(f, n):
+    """(evaluations per second wall, per CPU second) of f() evaluating n designs."""
+    w, c = time.perf_counter(), time.process_time()
+    f()
+    return n / (time.perf_counter() - w), n / (time.process_time() - c)
+
+
+def speed(ctx, rounds=5, n_fast=400, n_ref=12):
+    rng = np.random.default_rng(0)
+    X = rng.uniform(ctx.spec.xl, ctx.spec.xu, (n_fast, len(ctx.spec.xl)))
+    evaluate_batch(X[:4], ctx)          # compile (or load the cached kernels) and build the plan
+    RC.reference_score(head_from_variables(X[0], ctx.spec), ctx)
+    fast, ref = [], []
+    for _ in range(rounds):
+        fast.append(rate(lambda: evaluate_batch(X, ctx), n_fast))
+        ref.append(rate(lambda: [RC.reference_score(head_from_variables(x, ctx.spec), ctx) for x in X[:n_ref]], n_ref))
+    fast, ref = np.median(fast, axis=0), np.median(ref, axis=0)
+    print(f"one core, median of {rounds} alternated rounds ({n_fast} and {n_ref} designs per round):")
+    print(f"  batched, compiled: {fast[0]:8.1f} evaluations/s wall, {fast[1]:8.1f} per CPU second")
+    print(f"  old code:          {ref[0]:8.1f} evaluations/s wall, {ref[1]:8.1f} per CPU second")
+    print(f"  ratio:             {fast[0] / ref[0]:8.1f} x wall,       {fast[1] / ref[1]:8.1f} x CPU")
+
+
+def dask_rates(ctx, n):
+    from design.sweep import TASK_DESIGNS
+
+    X = np.random.default_rng(1).uniform(ctx.spec.xl, ctx.spec.xu, (n, len(ctx.spec.xl)))
+    out = {}
+    for workers in (1, 2):
+        client = open_client(workers=workers)
+        try:
+            ctx_f = client.scatter(ctx, broadcast=True)
+            client.gather(client.map(evaluate_batch, [X[:4]] * workers, ctx=ctx_f, pure=False))   # warm up
+            t = time.perf_counter()
+            chunks = [X[s:s + TASK_DESIGNS] for s in range(0, n, TASK_DESIGNS)]
+            client.gather(client.map(evaluate_batch, chunks, ctx=ctx_f, pure=False))
+            out[workers] = n / (time.perf_counter() - t)
+        finally:
+            client.close()
+        print(f"Dask LocalCluster, {workers} worker(s), {n} designs: {out[workers]:8.1f} evaluations/s")
+    print(f"scaling 2 / 1 workers: x{out[2] / out[1]:.2f} on {os.cpu_count()} cores")
+
+
+def convergence(spec, folder: Path, algorithm: str, seeds):
+    fractions = []
+    for seed in seeds:
+        for alg in (algorithm, "random"):
+            d = folder / f"{alg}_{seed}"
+            if not (d / "evaluations.csv").exists():
+                run_sweep(spec, d, evaluations=2520, seed=seed, algorithm=alg, progress=False)
+        c = fraction_to_match(*read_evaluations(folder / f"{algorithm}_{seed}"),
+                              *read_evaluations(folder / f"random_{seed}"), at=2520)
+        fractions.append(c.fraction)
+        print(f"seed {seed}: fraction {c.fraction:.3f} ({c.needed} evaluations; target {c.target:.5f}, "
+              f"{'exact' if c.exact else 'approximate'})")
+    print(f"median {np.median(fractions):.3f}, worst {np.max(fractions):.3f}")
 
 
 def main():
     spec = load_sweep()
     ctx = EvaluationContext.from_spec(spec)
-    rng = np.random.default_rng(0)
-    X = rng.uniform(spec.xl, spec.xu, (60, len(spec.xl)))
-    evaluate_design(X[0], ctx)  # warm up imports and caches
-    one = evals_per_second(ctx, X)
-    client = open_client(workers=2)
-    try:
-        ctx_f = client.scatter(ctx, broadcast=True)
-        client.gather(client.map(evaluate_design, list(X[:4]), ctx=ctx_f, pure=False))  # warm up workers
-        two = evals_per_second(ctx, np.vstack([X, X]), client)
-    finally:
-        client.close()
-    print(f"evaluations per second, one core:      {one:8.1f}")
-    print(f"evaluations per second, 2 Dask workers: {two:8.1f}   (speed-up x{two / one:.2f} on {os.cpu_count()} cores)")
-
-    budget = int(os.environ.get("BENCH_DESIGN_EVALS", 2520))
-    seeds = range(int(os.environ.get("BENCH_DESIGN_SEEDS", 3)))
-    client = open_client(workers=2)
-    ratios, rows = [], []
-    try:
-        for seed in seeds:
-            fronts = {}
-            for alg in ("nsga3", "random"):
-                with tempfile.TemporaryDirectory() as d:
-                    r = run_sweep(spec, Path(d), evaluations=budget, seed=seed, algorithm=alg, client=client,
-                                  progress=False, ctx=ctx)
-                fronts[alg] = r.F[non_dominated(r.F, r.feasible)]
-            union = np.vstack(list(fronts.values()))
-            ideal, nadir = union.min(axis=0), union.max(axis=0)
-            hv = {a: hypervolume_mc(normalise(F, ideal, nadir), 1.1, 200_000, seed=123)[0] for a, F in fronts.items()}
-            rows.append((seed, hv["nsga3"], hv["random"], len(fronts["nsga3"]), len(fronts["random"])))
-            ratios.append(hv["nsga3"] / hv["random"] if hv["random"] > 0 else float("inf"))
-    finally:
-        client.close()
-    print(f"\nhypervolume at {budget} evaluations (normalised on the union of both fronts, ref 1.1):")
-    print("seed   NSGA-III   random-variation   front sizes")
-    for seed, a, b, na, nb in rows:
-        print(f"{seed:4d}   {a:8.4f}   {b:16.4f}   {na} / {nb}")
-    print(f"median HV ratio NSGA-III / random-variation: {np.median(ratios):.3f}")
+    speed(ctx)
+    if os.environ.get("BENCH_DESIGN_DASK"):
+        dask_rates(ctx, int(os.environ["BENCH_DESIGN_DASK"]))
+    if os.environ.get("BENCH_DESIGN_CONVERGENCE"):
+        seeds = [int(s) for s in os.environ.get("BENCH_DESIGN_SEEDS", "0,1,2,3,4").split(",")]
+        convergence(spec, Path(os.environ["BENCH_DESIGN_CONVERGENCE"]), os.environ.get("BENCH_DESIGN_ALGORITHM", "nsga3"),
+                    seeds)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,14 @@
-"""Non-dominance (the paper's Pareto test) and a hypervolume estimate for 7 objectives."""
+"""Non-dominance (the paper's Pareto test) and the hypervolume of a front, by pymoo and moocore."""
 
 from __future__ import annotations
 
 import numpy as np
+
+#: Fronts up to this many points get moocore's exact hypervolume; larger ones its deterministic
+#: approximation (exact 7-objective hypervolume grows steeply: ~0.5 s at 100 points, ~30 s at 300).
+EXACT_HV_POINTS = 120
+#: Samples of moocore's approximation (Rphi-FWE+; relative error ~1e-4 on 7-objective fronts).
+APPROX_HV_SAMPLES = 2**18
 
 
 def dominates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -14,25 +20,20 @@ def dominates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.all(a <= b, axis=-1) & np.any(a < b, axis=-1)
 
 
-def non_dominated(F: np.ndarray, feasible: np.ndarray | None = None, chunk: int = 512) -> np.ndarray:
+def non_dominated(F: np.ndarray, feasible: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool mask of the non-dominated rows of F (N, M), among the feasible ones.
 
-    Infeasible rows are never in the front. O(N^2 M) comparisons, vectorised in chunks; fine
-    for the tens of thousands of evaluations a sweep makes.
+    Infeasible rows are never in the front; duplicates of a front point are all in it. pymoo's
+    find_non_dominated does the sorting.
     """
+    from pymoo.util.nds.non_dominated_sorting import find_non_dominated
+
     F = np.asarray(F, float)
-    n = len(F)
-    ok = np.ones(n, bool) if feasible is None else np.asarray(feasible, bool).copy()
+    ok = np.ones(len(F), bool) if feasible is None else np.asarray(feasible, bool)
     idx = np.flatnonzero(ok)
-    Ff = F[idx]
-    keep = np.ones(len(idx), bool)
-    for s in range(0, len(idx), chunk):
-        block = Ff[s:s + chunk]
-        # dominated[j] if any row dominates block row j
-        dom = dominates(Ff[:, None, :], block[None, :, :]).any(axis=0)
-        keep[s:s + chunk] = ~dom
-    out = np.zeros(n, bool)
-    out[idx[keep]] = True
+    out = np.zeros(len(F), bool)
+    if len(idx):
+        out[idx[np.asarray(find_non_dominated(F[idx]), int)]] = True
     return out
 
 
@@ -42,29 +43,20 @@ def normalise(F: np.ndarray, ideal: np.ndarray, nadir: np.ndarray) -> np.ndarray
     return (F - ideal) / span
 
 
-def hypervolume_mc(F_norm: np.ndarray, ref: float = 1.1, n_samples: int = 200_000, seed: int = 0,
-                   chunk: int = 20_000) -> tuple[float, float]:
-    """Monte Carlo hypervolume of normalised points F_norm (N, M) against the reference point
-    (ref, ..., ref), over the box [0, ref]^M. Returns (estimate, standard error), in units of
-    the normalised box (so 1.1^M is the whole box).
+def hypervolume(F_norm: np.ndarray, ref: float = 1.1) -> tuple[float, bool]:
+    """Hypervolume of normalised points F_norm (N, M) against (ref, ..., ref), in units of the
+    normalised box (so ref**M is the whole box [0, ref]^M), and whether it is exact.
 
-    Exact hypervolume in 7 dimensions is expensive and needs no more precision than this for
-    comparing fronts; the same seed gives the same samples, so comparisons are paired.
+    moocore's exact algorithm up to EXACT_HV_POINTS points that dominate the reference point,
+    its deterministic approximation beyond. Points not below the reference add nothing.
     """
+    import moocore
+
     F_norm = np.asarray(F_norm, float)
-    M = F_norm.shape[1]
-    box = ref**M
     pts = F_norm[np.all(F_norm < ref, axis=1)]
     if len(pts) == 0:
-        return 0.0, 0.0
-    rng = np.random.default_rng(seed)
-    hits = 0
-    for s in range(0, n_samples, chunk):
-        m = min(chunk, n_samples - s)
-        u = rng.uniform(0.0, ref, (m, M))
-        covered = np.zeros(m, bool)
-        for p in pts:
-            covered |= np.all(u >= p, axis=1)
-        hits += int(covered.sum())
-    frac = hits / n_samples
-    return frac * box, box * np.sqrt(frac * (1 - frac) / n_samples)
+        return 0.0, True
+    r = np.full(F_norm.shape[1], float(ref))
+    if len(pts) <= EXACT_HV_POINTS:
+        return float(moocore.hypervolume(pts, ref=r)), True
+    return float(moocore.hv_approx(pts, ref=r, nsamples=APPROX_HV_SAMPLES)), False

@@ -14,7 +14,6 @@ from pymoo.core.problem import Problem
 
 from kinematics import HeadGeometry, reference_head
 
-from . import criteria as C
 from .layout import head_from_variables
 from .sweep_file import CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec
 from .workload import Workload, build_workload
@@ -27,6 +26,24 @@ class EvaluationContext:
     spec: SweepSpec
     workload: Workload
 
+    @property
+    def evaluator(self):
+        """The batch evaluator (design.batch), made on first use in each process."""
+        ev = self.__dict__.get("_evaluator")
+        if ev is None:
+            from .batch import Evaluator
+            ev = Evaluator(self.spec, self.workload)
+            object.__setattr__(self, "_evaluator", ev)
+        return ev
+
+    def __getstate__(self):
+        # Shipped to Dask workers without the evaluator's caches (rebuilt there).
+        return {"spec": self.spec, "workload": self.workload}
+
+    def __setstate__(self, state):
+        object.__setattr__(self, "spec", state["spec"])
+        object.__setattr__(self, "workload", state["workload"])
+
     @classmethod
     def from_spec(cls, spec: SweepSpec) -> "EvaluationContext":
         # The workload depends only on the (fixed) axes, so any layout of the sweep will do.
@@ -35,38 +52,34 @@ class EvaluationContext:
 
 
 def score_head(head: HeadGeometry, ctx: EvaluationContext) -> tuple[dict, dict]:
-    """(criteria, constraints) of any head, as name -> value dicts in output order."""
-    tau = C.workload_torques(head, ctx.workload)
-    s = ctx.spec
-    crit = {
-        "working_volume_cm3": C.working_volume_cm3(head, s.voxel_m),
-        "self_collision": C.self_collision(head, s.collision_steps),
-        "integrated_torque": C.integrated_torque(head, ctx.workload, tau),
-        "max_torque_nm": C.max_torque_nm(head, ctx.workload, tau),
-        "radius_elevation_mm": C.radius_elevation_mm(head),
-        "radius_pan_mm": C.radius_pan_mm(head),
-        "radius_cyclotorsion_mm": C.radius_cyclotorsion_mm(head),
-    }
-    cons = {
-        "torque_excess_nm": C.torque_excess_nm(head, ctx.workload, tau),
-        "rest_penetration_m": C.rest_penetration_m(head, s.clearance_m),
-        "part_overlap_m": C.part_overlap_m(head, s.clearance_m),
-    }
-    assert tuple(crit) == CRITERIA and tuple(cons) == CONSTRAINTS
-    return crit, cons
+    """(criteria, constraints) of any head, as name -> value dicts in output order (the
+    definitions are design.criteria's; computed by the batch kernels)."""
+    from .batch import arrays_from_head
+
+    F, G = ctx.evaluator(arrays_from_head(head), head)
+    return dict(zip(CRITERIA, map(float, F[0]))), dict(zip(CONSTRAINTS, map(float, G[0])))
 
 
 def evaluate_design(x, ctx: EvaluationContext) -> tuple[np.ndarray, np.ndarray]:
     """(F (7,), G (3,)) of one design vector x (12,)."""
-    crit, cons = score_head(head_from_variables(x, ctx.spec), ctx)
-    return np.array(list(crit.values())), np.array(list(cons.values()))
+    x = np.asarray(x, float)
+    if x.shape != (len(VARIABLES),):
+        head_from_variables(x, ctx.spec)   # raises the layout's message for a wrong shape
+    F, G = evaluate_batch(x[None], ctx)
+    return F[0], G[0]
 
 
 def evaluate_batch(X, ctx: EvaluationContext) -> tuple[np.ndarray, np.ndarray]:
-    """(F (n, 7), G (n, 3)) of design vectors X (n, 12)."""
+    """(F (n, 7), G (n, 3)) of design vectors X (n, 12): the layout as arrays for all designs at
+    once, the criteria by the compiled kernels (design.batch)."""
+    from .batch import arrays_from_variables
+
     X = np.atleast_2d(np.asarray(X, float))
-    out = [evaluate_design(x, ctx) for x in X]
-    return np.array([o[0] for o in out]).reshape(-1, len(CRITERIA)), np.array([o[1] for o in out]).reshape(-1, len(CONSTRAINTS))
+    if X.ndim != 2 or X.shape[1] != len(VARIABLES):
+        raise ValueError(f"designs must be an (n, {len(VARIABLES)}) array ({', '.join(VARIABLES)}), got {X.shape}")
+    if len(X) == 0:
+        return np.empty((0, len(CRITERIA))), np.empty((0, len(CONSTRAINTS)))
+    return ctx.evaluator(arrays_from_variables(X, ctx.spec))
 
 
 class HeadLayoutProblem(Problem):

@@ -13,18 +13,16 @@ from kinematics.mjcf import build_mjcf
 
 from .decide import choose_design
 from .layout import head_from_variables
-from .pareto import hypervolume_mc, non_dominated, normalise
+from .pareto import hypervolume, non_dominated, normalise
 from .problem import reference_scores
 from .sweep import SweepResult
 from .sweep_file import CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec
 
-HV_SAMPLES = 100_000
-
-
-def front_hypervolume(F_front: np.ndarray, seed: int = 0) -> tuple[float, float]:
-    """Monte Carlo hypervolume of a front normalised by its own ideal and nadir, ref point 1.1."""
+def front_hypervolume(F_front: np.ndarray) -> tuple[float, bool]:
+    """Hypervolume of a front normalised by its own ideal and nadir, ref point 1.1, and whether
+    it is exact (pareto.hypervolume)."""
     Fn = normalise(F_front, F_front.min(axis=0), F_front.max(axis=0))
-    return hypervolume_mc(Fn, 1.1, HV_SAMPLES, seed)
+    return hypervolume(Fn, 1.1)
 
 
 @dataclass(frozen=True)
@@ -33,9 +31,9 @@ class ChosenDesign:
 
     index : its row in the sweep's evaluations (SweepResult order). decision : how it was chosen
     (the method and weights, in words). criteria, reference_criteria : the seven criteria of the
-    chosen and of the reference head, by name (sweep_file.CRITERIA). hypervolume, hypervolume_se :
-    the front's normalised Monte Carlo hypervolume and its standard error. head_path : its
-    chosen_head.toml.
+    chosen and of the reference head, by name (sweep_file.CRITERIA). hypervolume,
+    hypervolume_exact : the front's normalised hypervolume and whether it is exact (else
+    moocore's approximation). head_path : its chosen_head.toml.
     """
 
     index: int
@@ -43,7 +41,7 @@ class ChosenDesign:
     criteria: dict[str, float]
     reference_criteria: dict[str, float]
     hypervolume: float
-    hypervolume_se: float
+    hypervolume_exact: bool
     head_path: Path
 
 
@@ -97,10 +95,10 @@ def write_outputs(result: SweepResult, spec: SweepSpec, out: Path, pictures: boo
     head = head_from_variables(result.X[i_chosen], spec, name=f"{spec.name}-chosen")
     save_head(head, out / "chosen_head.toml")
     (out / "head.xml").write_text(build_mjcf(head))
-    hv, hv_se = front_hypervolume(result.F[idx])
+    hv, hv_exact = front_hypervolume(result.F[idx])
     chosen = ChosenDesign(index=i_chosen, decision=how, criteria=dict(zip(CRITERIA, map(float, result.F[i_chosen]))),
                           reference_criteria={c: float(v) for c, v in ref_crit.items()}, hypervolume=hv,
-                          hypervolume_se=hv_se, head_path=out / "chosen_head.toml")
+                          hypervolume_exact=hv_exact, head_path=out / "chosen_head.toml")
     pics = {}
     if pictures:
         pics["parallel"] = _parallel_coordinates(result.F[idx], k, out / "front_parallel.png")
@@ -172,9 +170,11 @@ def _report(spec: SweepSpec, o: DesignOutputs) -> str:
     if c is None:
         lines += ["No feasible design was found: widen the bounds or raise the budget.", ""]
         return "\n".join(lines)
-    lines += [f"- Hypervolume of the front: {c.hypervolume:.4f} ± {c.hypervolume_se:.4f} "
+    how = ("exact (moocore)" if c.hypervolume_exact else
+           "moocore's deterministic approximation, relative error about 1e-4, as the front is too large for the exact one")
+    lines += [f"- Hypervolume of the front: {c.hypervolume:.4f} "
               f"(objectives normalised to [0, 1] between the front's ideal and nadir, reference point 1.1 in each, "
-              f"so at most 1.1^7 = {1.1 ** 7:.4f}; Monte Carlo with {HV_SAMPLES:,} samples, ± one standard error)",
+              f"so at most 1.1^7 = {1.1 ** 7:.4f}; {how})",
               f"- Decision: {c.decision}", "",
               "| criterion | chosen | reference head |", "|---|---|---|"]
     for name in CRITERIA:

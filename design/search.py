@@ -15,6 +15,7 @@ import numpy as np
 from pymoo.algorithms.moo.nsga3 import NSGA3
 from pymoo.core.evaluator import Evaluator
 from pymoo.core.problem import Problem
+from pymoo.operators.sampling.lhs import LHS
 from pymoo.problems.static import StaticProblem
 from pymoo.util.ref_dirs import get_reference_directions
 
@@ -56,9 +57,12 @@ class PymooAskTell(AskTell):
 
 
 def nsga3(problem: Problem, seed: int, partitions: int) -> PymooAskTell:
-    """NSGA-III over the problem with Das-Dennis directions (population = number of directions)."""
+    """NSGA-III over the problem with Das-Dennis directions (population = number of directions),
+    started from a Latin hypercube over the bounds (docs/design-sweeps.md: with 28 directions it
+    reaches random variation's 2520-evaluation hypervolume in 0.32-0.50 of the evaluations over
+    seeds 0-4, against 0.58-0.94 for 84 directions and a uniform start)."""
     ref_dirs = get_reference_directions("das-dennis", problem.n_obj, n_partitions=partitions)
-    return PymooAskTell(NSGA3(ref_dirs=ref_dirs, pop_size=len(ref_dirs)), problem, seed)
+    return PymooAskTell(NSGA3(ref_dirs=ref_dirs, pop_size=len(ref_dirs), sampling=LHS()), problem, seed)
 
 
 class RandomVariation(AskTell):

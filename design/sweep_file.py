@@ -34,6 +34,16 @@ class SweepFileError(ValueError):
     """A sweep.toml that cannot be used; the message names the field and the fix."""
 
 
+#: Work-size bounds, checked before any work: each keeps one evaluation (or the algorithm's set
+#: up) within about a second and its memory within tens of MB on a laptop.
+MAX_COLLISION_STEPS = 40          # 64,000 postures
+MIN_VOXEL_M = 0.0005              # the sweep costs ~ voxel_m**-4: 0.5 mm is ~1300 times 3 mm
+MAX_VOXEL_M = 0.05
+MAX_WORKLOAD_SAMPLES = 200_000    # 50 times the default workload's 3,983
+MAX_SACCADE_DEG = 90.0            # a gaze redirection, not a turn of the head
+MAX_REFERENCE_DIRECTIONS = 3003   # Das-Dennis, 7 objectives, 8 partitions
+
+
 @dataclass(frozen=True)
 class WorkloadSpec:
     rate_hz: float = 100.0
@@ -177,11 +187,33 @@ def _spec_from_dict(d: dict) -> SweepSpec:
     weights = tuple(_num(v, "[decision].weights") for v in weights)
     if min(weights) < 0 or sum(weights) <= 0:
         raise SweepFileError("[decision].weights must be >= 0 with a positive sum")
+    partitions = _num(s["partitions"], "[sweep].partitions", positive=True, integer=True)
+    n_dirs = math.comb(partitions + len(CRITERIA) - 1, len(CRITERIA) - 1)
+    if n_dirs > MAX_REFERENCE_DIRECTIONS:
+        raise SweepFileError(f"[sweep].partitions = {partitions} gives {n_dirs:,} reference directions for "
+                             f"{len(CRITERIA)} objectives (the population per generation); at most "
+                             f"{MAX_REFERENCE_DIRECTIONS:,}: use partitions <= 8")
+    voxel_m = _num(d["criteria"]["voxel_m"], "[criteria].voxel_m", positive=True)
+    if not MIN_VOXEL_M <= voxel_m <= MAX_VOXEL_M:
+        raise SweepFileError(f"[criteria].voxel_m = {voxel_m:g} must be from {MIN_VOXEL_M:g} to {MAX_VOXEL_M:g} m "
+                             f"(the voxel sweep's work grows as voxel_m**-4; the default is 0.003)")
+    steps = _num(d["criteria"]["collision_steps"], "[criteria].collision_steps", positive=True, integer=True)
+    if not 2 <= steps <= MAX_COLLISION_STEPS:
+        raise SweepFileError(f"[criteria].collision_steps = {steps} must be from 2 to {MAX_COLLISION_STEPS} "
+                             f"(steps**3 postures per design; the default is 9)")
+    for a in wl.saccade_amplitudes_deg:
+        if a > MAX_SACCADE_DEG:
+            raise SweepFileError(f"[workload].saccade_amplitudes_deg holds {a:g}: at most {MAX_SACCADE_DEG:g} deg")
+    n = workload_samples(wl)
+    if n > MAX_WORKLOAD_SAMPLES:
+        raise SweepFileError(f"[workload] would have {n:,} samples (rate_hz x the saccades' and walk's seconds); at "
+                             f"most {MAX_WORKLOAD_SAMPLES:,}: lower [workload].rate_hz, walk_seconds or the "
+                             f"saccade amplitudes")
     return SweepSpec(
         name=str(s.get("name", "sweep")), servo=servo, range_deg=rng_deg,
         evaluations=_num(s["evaluations"], "[sweep].evaluations", positive=True, integer=True),
-        seed=_num(s["seed"], "[sweep].seed", integer=True), algorithm=algorithm,
-        partitions=_num(s["partitions"], "[sweep].partitions", positive=True, integer=True),
+        seed=_num(s["seed"], "[sweep].seed", integer=True, nonnegative=True), algorithm=algorithm,
+        partitions=partitions,
         # A negative clearance would let parts overlap and make every design feasible.
         clearance_m=_num(s["clearance_m"], "[sweep].clearance_m", nonnegative=True),
         camera_mass_kg=_num(d["camera"]["mass_kg"], "[camera].mass_kg", positive=True),
@@ -190,10 +222,19 @@ def _spec_from_dict(d: dict) -> SweepSpec:
                                   nonnegative=True),
         bracket_size_m=_num(d["bracket"]["size_m"], "[bracket].size_m", positive=True),
         bounds=tuple(bounds),
-        voxel_m=_num(d["criteria"]["voxel_m"], "[criteria].voxel_m", positive=True),
-        collision_steps=_num(d["criteria"]["collision_steps"], "[criteria].collision_steps", positive=True, integer=True),
+        voxel_m=voxel_m, collision_steps=steps,
         workload=wl, decision_method=method, decision_weights=weights,
     )
+
+
+def workload_samples(wl: WorkloadSpec) -> int:
+    """About the number of samples design.workload.build_workload makes (within a few), without making them."""
+    h = 1.0 / wl.rate_hz
+    n = 0
+    for a in wl.saccade_amplitudes_deg:
+        T = 1.875 * math.radians(a) / math.radians(wl.saccade_peak_rate_deg_s)
+        n += 8 * max(min(int(round(T / h)), 10**12) + 1, 5)   # 4 directions from 2 starts
+    return n + int(min(wl.walk_seconds / h, 10**12)) + 1
 
 
 def load_sweep(path: str | Path | None = None) -> SweepSpec:

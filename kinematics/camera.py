@@ -10,18 +10,19 @@ pixels
     OpenCV convention: the centre of pixel (0, 0) is at (0, 0), so the image spans
     ``-0.5 .. width - 0.5`` by ``-0.5 .. height - 0.5``.
 
-Lens models (each maps an undistorted normalised point to pixels)
------------------------------------------------------------------
+Lens models
+-----------
+Each maps an undistorted normalised point to pixels; each is one class of
+:mod:`kinematics.lenses` (its terms, kernel, inverse and rules), listed in its table ``LENSES``,
+which camera.toml's parsing, validation and saving use:
+
 ``brown``
     OpenCV's radial-tangential model, exactly as ``cv2.projectPoints`` with
     ``distCoeffs = [k1, k2, p1, p2, k3]``.
 ``fisheye``
-    OpenCV's equidistant model, exactly as ``cv2.fisheye.projectPoints`` with ``D = [k1..k4]``:
-    ``theta = atan(r)``, ``theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)``.
+    OpenCV's equidistant model, exactly as ``cv2.fisheye.projectPoints`` with ``D = [k1..k4]``.
 ``radial-sqrt``
-    MonoSLAM's one-parameter model with ``kd1`` in pixels^-2, applied in pixels about (cx, cy):
-    ``d = c + (p - c) / sqrt(1 + 2 kd1 r^2)``; its exact inverse is
-    ``p = c + (d - c) / sqrt(1 - 2 kd1 r_d^2)``.
+    MonoSLAM's one-parameter model with ``kd1`` in pixels^-2, applied in pixels about (cx, cy).
 
 Points that have no image
 -------------------------
@@ -40,7 +41,7 @@ Like OpenCV, brown and fisheye :func:`distort` return a value even past the fold
 Every function that has a derivative sits next to its ``*_jacobian`` twin, which returns the same
 values plus the analytic Jacobian (the MonoSLAM ``f_and_df`` pattern).
 
-Each lens model is one numba-compiled kernel for a single point (see "Lens models" below), looped
+Each lens model is one numba-compiled kernel for a single point (:mod:`kinematics.lenses`), looped
 over points by the array functions and called directly by the SLAM measurement model.
 """
 
@@ -55,26 +56,17 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Mapping
 
-import numba
 import numpy as np
 import tomli_w
 
+from .lenses import (BROWN, FISHEYE, LENSES, RADIAL_SQRT, TERMS, UNDISTORT_MAX_ITER, UNDISTORT_TOL,  # noqa: F401
+                     distort_points, lens_kernel_args, project_point_kernel, project_points, undistort_points)
 from .tomlfile import read_toml
 
-#: Distortion terms each lens model takes, in the order OpenCV lists them.
-LENS_MODELS: dict[str, tuple[str, ...]] = {
-    "brown": ("k1", "k2", "p1", "p2", "k3"),
-    "fisheye": ("k1", "k2", "k3", "k4"),
-    "radial-sqrt": ("kd1",),
-}
-_ALL_TERMS = ("k1", "k2", "k3", "k4", "p1", "p2", "kd1")
+#: Distortion terms each lens model takes, in the order OpenCV lists them (from ``LENSES``).
+LENS_MODELS: dict[str, tuple[str, ...]] = {name: lens.terms for name, lens in LENSES.items()}
+_ALL_TERMS = TERMS
 _REQUIRED = ("width", "height", "fx", "fy", "cx", "cy")
-
-#: undistort's Newton iteration stops when its step is below this, in normalised coordinates.
-#: Newton converges quadratically, so the error left after such a step is far smaller still.
-UNDISTORT_TOL = 1e-12
-#: ... or after this many iterations, when the unconverged points become NaN.
-UNDISTORT_MAX_ITER = 50
 
 # What each field means, appended to error messages so the user knows what to write.
 _HINTS = {
@@ -84,8 +76,8 @@ _HINTS = {
     "fy": "focal length in pixels, e.g. 514.7",
     "cx": "principal point in pixels, OpenCV convention, e.g. 319.5 for a 640-wide image",
     "cy": "principal point in pixels, OpenCV convention, e.g. 239.5 for a 480-high image",
-    "model": 'lens model: "brown", "fisheye" or "radial-sqrt"',
-    "kd1": "radial-sqrt distortion in pixels^-2, e.g. 1e-6; 0 for none",
+    "model": "lens model: " + ", ".join(f'"{m}"' for m in list(LENSES)[:-1]) + f' or "{list(LENSES)[-1]}"',
+    **{term: hint for lens in LENSES.values() for term, hint in lens.hints.items()},
 }
 _TERM_HINT = "dimensionless distortion coefficient; 0 for none"
 
@@ -206,19 +198,9 @@ class CameraIntrinsics:
             if name not in LENS_MODELS[self.model] and getattr(self, name) != 0:
                 fail(name, f"is not a term of model {_show(self.model)}",
                      f"{self.model} takes {', '.join(LENS_MODELS[self.model])}; set it to 0 or change model")
-        if self.model == "radial-sqrt" and self.kd1 > 0:
-            # The inverse divides by sqrt(1 - 2 kd1 r_d^2): it must stay positive over the whole
-            # image, whose farthest points from (cx, cy) are its outer corners (pixel edges).
-            corners = np.array([[-0.5, -0.5], [self.width - 0.5, -0.5],
-                                [-0.5, self.height - 0.5], [self.width - 0.5, self.height - 0.5]])
-            rd2 = np.sum((corners - [self.cx, self.cy]) ** 2, axis=1)
-            worst = int(np.argmax(rd2))
-            margin = 1.0 - 2.0 * self.kd1 * rd2[worst]
-            if margin <= 0:
-                u, v = corners[worst]
-                fail("kd1", f"is too large for a {self.width}x{self.height} image",
-                     f"1 - 2 kd1 r_d^2 = {margin:.3g} at the corner ({u:g}, {v:g}), so the lens has no "
-                     f"inverse there; use kd1 < {1.0 / (2.0 * rd2[worst]):.6g}")
+        broken = LENSES[self.model].check(self)
+        if broken is not None:
+            fail(*broken)
 
     # -- camera.toml --
     def to_dict(self) -> dict:
@@ -241,6 +223,11 @@ class CameraIntrinsics:
             raise CameraFileError(f"{source}: {e}") from None
 
 
+# A lens term is a field of CameraIntrinsics (of the same name, in the order of lenses.TERMS).
+assert tuple(f.name for f in fields(CameraIntrinsics)) == _REQUIRED + ("model",) + TERMS, \
+    "CameraIntrinsics' fields must be width, height, fx, fy, cx, cy, model and lenses.TERMS"
+
+
 def _camera_table(d: Mapping) -> dict:
     """Check the document's keys and return the [camera] table as CameraIntrinsics arguments."""
     if not isinstance(d, Mapping) or "camera" not in d:
@@ -259,7 +246,7 @@ def _camera_table(d: Mapping) -> dict:
     model = t.get("model", "brown")
     if not isinstance(model, str) or model not in LENS_MODELS:
         raise CameraFileError(f"[camera].model = {_show(model)} is not a known lens model ({_HINTS['model']})")
-    allowed = _REQUIRED + ("model",) + LENS_MODELS[model]
+    allowed = _REQUIRED + ("model", "depth_scale") + LENS_MODELS[model]
     for k in t:
         if k in allowed:
             continue
@@ -275,7 +262,13 @@ def _camera_table(d: Mapping) -> dict:
     for k in _REQUIRED:
         if k not in t:
             raise CameraFileError(f"[camera].{k} is missing; add it ({_HINTS[k]})")
-    return dict(t)
+    t = dict(t)
+    # The depth images' units per metre: the sequence's, read by its depth reader, not the lens's.
+    ds = t.pop("depth_scale", 5000.0)
+    if not _is_real(ds) or not math.isfinite(ds) or ds <= 0:
+        raise CameraFileError(f"[camera].depth_scale = {_show(ds)} must be a positive number (depth image units "
+                              "per metre; TUM RGB-D: 5000)")
+    return t
 
 
 def load_camera(path: str | Path) -> CameraIntrinsics:
@@ -300,47 +293,6 @@ def default_camera() -> CameraIntrinsics:
     return DEFAULT_CAMERA
 
 
-# ---------------------------------------------------------------------------------------------
-# Lens models. Each model is written once, as a numba-compiled kernel for ONE point (scalars in,
-# scalars out, with its analytic 2x2 Jacobian). The array functions of this module loop those
-# kernels over points in compiled code, and runtime.slam.measurement calls
-# :func:`project_point_kernel` from its own compiled measurement model, so the EKF's per-feature
-# path and the public vectorised API share one implementation of every formula (a single point
-# costs microseconds instead of the ~100 us of numpy's per-call overhead). The brown and fisheye
-# models distort in normalised coordinates and then apply K; radial-sqrt distorts in pixels
-# about (cx, cy).
-#
-# The kernels take the camera as (model code, parameter vector), see :func:`lens_kernel_args`;
-# ``error_model="numpy"`` makes a division by zero give inf/NaN instead of raising, as numpy does.
-# The kernels call only kernels of this file, so numba's on-disk cache (invalidated when this
-# file changes) is never stale.
-# ---------------------------------------------------------------------------------------------
-
-_jit = numba.njit(cache=True, error_model="numpy")
-
-#: Model codes the kernels switch on (a string cannot be passed cheaply into compiled code).
-BROWN, FISHEYE, RADIAL_SQRT = 0, 1, 2
-_MODEL_CODES = {"brown": BROWN, "fisheye": FISHEYE, "radial-sqrt": RADIAL_SQRT}
-#: Order of the kernels' parameter vector (pixels, and the dimensionless / px^-2 terms).
-_PARAM_ORDER = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2", "kd1")
-_FX, _FY, _CX, _CY, _K1, _K2, _K3, _K4, _P1, _P2, _KD1 = range(len(_PARAM_ORDER))
-
-
-def lens_kernel_args(cam: CameraIntrinsics) -> tuple[int, np.ndarray]:
-    """``(model code, parameters (11,))`` of ``cam`` for the compiled lens kernels
-    (:func:`project_point_kernel` and friends), parameters in the order of ``_PARAM_ORDER``.
-
-    Computed once per camera and kept on it (the camera is immutable); do not modify the array.
-    """
-    args = cam.__dict__.get("_lens_kernel_args")
-    if args is None:
-        args = (_MODEL_CODES[cam.model], np.array([getattr(cam, name) for name in _PARAM_ORDER], dtype=np.float64))
-        # A frozen dataclass refuses setattr; the cache is not a field (equality, hashing,
-        # to_dict and replace() never see it), so writing it into __dict__ is safe.
-        cam.__dict__["_lens_kernel_args"] = args
-    return args
-
-
 def _nan_for_bad_points(func):
     """Silence numpy's floating-point warnings in an array function: invalid points (NaN, inf,
     outside a model's domain, a diverging Newton iteration) already come back as NaN."""
@@ -360,177 +312,6 @@ def _points(a, dim: int, name: str) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _focal(cam: CameraIntrinsics) -> np.ndarray:
-    return np.array([cam.fx, cam.fy])
-
-
-def _centre(cam: CameraIntrinsics) -> np.ndarray:
-    return np.array([cam.cx, cam.cy])
-
-
-@_jit
-def _brown_radial(p, r2):
-    """The brown model's radial factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (r2 = r^2, scalar or
-    array)."""
-    return 1.0 + r2 * (p[_K1] + r2 * (p[_K2] + r2 * p[_K3]))
-
-
-@_jit
-def _brown_point(p, x, y):
-    """Brown-distorted normalised point ``(xd, yd)`` of the normalised point ``(x, y)`` and
-    ``d(xd, yd)/d(x, y)`` as ``(j00, j01, j10, j11)``."""
-    k1, k2, k3, p1, p2 = p[_K1], p[_K2], p[_K3], p[_P1], p[_P2]
-    r2 = x * x + y * y
-    radial = _brown_radial(p, r2)
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
-    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # the model's Jacobian is symmetric
-    j00 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    j11 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    return xd, yd, j00, cross, cross, j11
-
-
-# Below this normalised radius the fisheye scale theta_d / r is 1 to double precision (its
-# series is 1 + (k1 - 1/3) r^2 + ...), which is also the cut-off cv2.fisheye uses.
-_FISHEYE_SMALL_R = 1e-8
-
-
-@_jit
-def _fisheye_poly(p, theta):
-    """theta_d = g(theta) and g'(theta) of the equidistant model (theta scalar or array, rad)."""
-    k1, k2, k3, k4 = p[_K1], p[_K2], p[_K3], p[_K4]
-    t2 = theta * theta
-    g = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-    dg = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
-    return g, dg
-
-
-@_jit
-def _fisheye_point(p, x, y):
-    """Fisheye-distorted normalised point ``(x, y) s(r)``, ``s = theta_d / r``, and its Jacobian
-    ``(j00, j01, j10, j11)``."""
-    r = math.hypot(x, y)
-    g, dg = _fisheye_poly(p, math.atan(r))
-    if r < _FISHEYE_SMALL_R:
-        s = 1.0
-        ds_over_r = 2.0 * (p[_K1] - 1.0 / 3.0)   # the limit at r = 0
-    else:
-        # d(xy s)/d(xy) = s I + (s'(r) / r) xy xy^T, with s'(r) = (g'(theta) / (1 + r^2) - s) / r.
-        # The difference loses digits as r -> 0, but it is multiplied by |xy|^2 ~ r^2, so the
-        # absolute error of the Jacobian stays at rounding level.
-        s = g / r
-        ds_over_r = (dg / (1.0 + r * r) - s) / (r * r)
-    cross = ds_over_r * x * y
-    return x * s, y * s, s + ds_over_r * x * x, cross, cross, s + ds_over_r * y * y
-
-
-@_jit
-def _radial_sqrt_point(p, x, y):
-    """Pixels ``(u, v)`` of the normalised point ``(x, y)`` through MonoSLAM's radial-sqrt model
-    and ``d(uv)/d(xy)`` ``(j00, j01, j10, j11)``, pixels; NaN where ``1 + 2 kd1 r^2 <= 0``."""
-    fx, fy, kd1 = p[_FX], p[_FY], p[_KD1]
-    ex, ey = x * fx, y * fy  # undistorted offset from (cx, cy), pixels
-    q = 1.0 + 2.0 * kd1 * (ex * ex + ey * ey)
-    s = 1.0 / math.sqrt(q) if q > 0 else np.nan
-    # d(e s)/de = s I - 2 kd1 s^3 e e^T, then de/dxy = diag(fx, fy) scales the columns.
-    c = 2.0 * kd1 * s * s * s
-    return (p[_CX] + ex * s, p[_CY] + ey * s,
-            (s - c * ex * ex) * fx, -c * ex * ey * fy, -c * ey * ex * fx, (s - c * ey * ey) * fy)
-
-
-@_jit
-def _normalised_point(model, p, x, y):
-    """Distorted normalised point and its Jacobian for the models that distort in normalised
-    coordinates (brown, fisheye)."""
-    if model == BROWN:
-        return _brown_point(p, x, y)
-    return _fisheye_point(p, x, y)
-
-
-@_jit
-def _distort_point(model, p, x, y):
-    """Pixels ``(u, v)`` of the undistorted normalised point ``(x, y)`` through the lens model,
-    and ``d(uv)/d(xy)`` ``(j00, j01, j10, j11)``, pixels."""
-    if model == RADIAL_SQRT:
-        return _radial_sqrt_point(p, x, y)
-    xd, yd, j00, j01, j10, j11 = _normalised_point(model, p, x, y)
-    fx, fy = p[_FX], p[_FY]
-    return (xd * fx + p[_CX], yd * fy + p[_CY], j00 * fx, j01 * fx, j10 * fy, j11 * fy)
-
-
-@_jit
-def project_point_kernel(model, p, X, Y, Z):
-    """Pixels ``(u, v)`` of the optical-frame point ``(X, Y, Z)`` (m) and ``d(uv)/d(X, Y, Z)``
-    as six numbers ``(j00, j01, j02, j10, j11, j12)``, px/m; all NaN when ``Z <= 0`` (or NaN).
-
-    Compiled (numba): call it from other compiled code with ``lens_kernel_args(cam)``; from
-    Python use :func:`project_jacobian`, which loops it over points."""
-    if not Z > 0:
-        return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
-    x, y = X / Z, Y / Z
-    u, v, a, b, c, d = _distort_point(model, p, x, y)
-    # d(X/Z, Y/Z)/d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]], composed with the lens's 2x2.
-    iz = 1.0 / Z
-    return (u, v, a * iz, b * iz, -(a * x + b * y) * iz, c * iz, d * iz, -(c * x + d * y) * iz)
-
-
-@_jit
-def _distort_many(model, p, xy):
-    """(N, 2) pixels and (N, 2, 2) d(uv)/d(xy) of the (N, 2) normalised points."""
-    n = xy.shape[0]
-    uv = np.empty((n, 2))
-    J = np.empty((n, 2, 2))
-    for i in range(n):
-        uv[i, 0], uv[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = \
-            _distort_point(model, p, xy[i, 0], xy[i, 1])
-    return uv, J
-
-
-@_jit
-def _normalised_many(model, p, xy):
-    """(N, 2) distorted normalised points and (N, 2, 2) Jacobians (brown, fisheye only)."""
-    n = xy.shape[0]
-    out = np.empty((n, 2))
-    J = np.empty((n, 2, 2))
-    for i in range(n):
-        out[i, 0], out[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = \
-            _normalised_point(model, p, xy[i, 0], xy[i, 1])
-    return out, J
-
-
-@_jit
-def _project_many(model, p, P):
-    """(N, 2) pixels and (N, 2, 3) d(uv)/d(P) of the (N, 3) optical-frame points."""
-    n = P.shape[0]
-    uv = np.empty((n, 2))
-    J = np.empty((n, 2, 3))
-    for i in range(n):
-        (uv[i, 0], uv[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 0, 2],
-         J[i, 1, 0], J[i, 1, 1], J[i, 1, 2]) = project_point_kernel(model, p, P[i, 0], P[i, 1], P[i, 2])
-    return uv, J
-
-
-def _forward(cam, xy, jac: bool):
-    """Pixels (N, 2) of normalised points (N, 2, C-contiguous) and, if jac, d(uv)/d(xy)."""
-    model, p = lens_kernel_args(cam)
-    uv, J = _distort_many(model, p, xy)
-    return uv, (J if jac else None)
-
-
-def _radial_sqrt_inverse(cam, uv, jac: bool):
-    """Formats.md's closed-form inverse: normalised points (N, 2) and, if jac, d(xy)/d(uv)."""
-    d = uv - _centre(cam)  # distorted offset, pixels
-    w = 1.0 - 2.0 * cam.kd1 * np.sum(d * d, axis=1)
-    t = 1.0 / np.sqrt(np.where(w > 0, w, np.nan))
-    xy = d * t[:, None] / _focal(cam)
-    if not jac:
-        return xy, None
-    # d(d t)/dd = t I + 2 kd1 t^3 d d^T, then xy = (.)/f scales the rows.
-    J = t[:, None, None] * np.eye(2) + (2.0 * cam.kd1 * t**3)[:, None, None] * d[:, :, None] * d[:, None, :]
-    return xy, J / _focal(cam)[None, :, None]
-
-
 @_nan_for_bad_points
 def distort(cam: CameraIntrinsics, xy) -> np.ndarray:
     """Undistorted normalised points to pixels through the lens model.
@@ -539,7 +320,7 @@ def distort(cam: CameraIntrinsics, xy) -> np.ndarray:
     xy : (N, 2) float, undistorted normalised coordinates (X/Z, Y/Z), dimensionless.
     Returns uv : (N, 2) float, pixels (OpenCV convention). NaN outside the model's domain.
     """
-    return _forward(cam, _points(xy, 2, "xy"), jac=False)[0]
+    return distort_points(cam, _points(xy, 2, "xy"))[0]
 
 
 @_nan_for_bad_points
@@ -548,90 +329,7 @@ def distort_jacobian(cam: CameraIntrinsics, xy) -> tuple[np.ndarray, np.ndarray]
 
     Returns uv : (N, 2) pixels, and J : (N, 2, 2), J[i] = d(uv_i)/d(xy_i), pixels.
     """
-    return _forward(cam, _points(xy, 2, "xy"), jac=True)
-
-
-def _newton_brown(cam, xd):
-    """Solve brown(x) = xd for x, vectorised 2-D Newton started at x = xd.
-
-    xd : (N, 2) distorted normalised points. Returns (N, 2), NaN where it did not converge.
-    """
-    p = lens_kernel_args(cam)[1]
-    x = xd.copy()
-    active = np.isfinite(xd).all(axis=1)
-    converged = np.zeros(len(xd), bool)
-    for _ in range(UNDISTORT_MAX_ITER):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        d, J = _normalised_many(BROWN, p, x[idx])
-        res = d - xd[idx]
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        step = np.stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
-                         J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], axis=1) / det[:, None]
-        x[idx] -= step
-        size = np.abs(step).max(axis=1)
-        done = size <= UNDISTORT_TOL
-        converged[idx[done]] = True
-        active[idx[done | ~np.isfinite(size)]] = False  # finished, or diverged (singular J)
-    # Past the fold the radial factor can turn negative, mapping points through the centre to
-    # the opposite side (with det J > 0 again, so _inverse's check alone would not catch it).
-    r2 = np.sum(x * x, axis=1)
-    converged &= _brown_radial(p, r2) > 0
-    return np.where(converged[:, None], x, np.nan)
-
-
-def _newton_fisheye(cam, xd):
-    """Invert the equidistant model: solve g(theta) = |xd| by 1-D Newton (as cv2.fisheye does),
-    then r = tan(theta). Returns (N, 2), NaN where it did not converge or theta >= pi/2."""
-    p = lens_kernel_args(cam)[1]
-    theta_d = np.hypot(xd[:, 0], xd[:, 1])
-    theta = theta_d.copy()
-    active = np.isfinite(theta_d)
-    converged = np.zeros(len(xd), bool)
-    for _ in range(UNDISTORT_MAX_ITER):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        g, dg = _fisheye_poly(p, theta[idx])
-        step = (g - theta_d[idx]) / dg
-        theta[idx] -= step
-        # A step d(theta) moves the normalised radius r = tan(theta) by (1 + r^2) d(theta).
-        size = np.abs(step) * (1.0 + np.tan(theta[idx]) ** 2)
-        done = size <= UNDISTORT_TOL
-        converged[idx[done]] = True
-        active[idx[done | ~np.isfinite(size)]] = False
-    converged &= (theta >= 0) & (theta < np.pi / 2)
-    scale = np.where(theta_d > 0, np.tan(theta) / theta_d, 1.0)  # r / theta_d -> 1 as r -> 0
-    return np.where(converged[:, None], xd * scale[:, None], np.nan)
-
-
-_NEWTON = {"brown": _newton_brown, "fisheye": _newton_fisheye}
-
-
-def _inverse(cam, uv, jac: bool):
-    if cam.model != "fisheye" and not any(cam.distortion.values()):
-        # brown or radial-sqrt with every term zero is the pinhole: its inverse exactly, no
-        # iteration (a fisheye with zero terms is still equidistant, not a pinhole).
-        xy = (uv - _centre(cam)) / _focal(cam)
-        J = np.broadcast_to(np.diag(1.0 / _focal(cam)), (len(uv), 2, 2)).copy() if jac else None
-        return xy, J
-    if cam.model == "radial-sqrt":
-        return _radial_sqrt_inverse(cam, uv, jac)
-    xy = _NEWTON[cam.model](cam, (uv - _centre(cam)) / _focal(cam))
-    # A root where the forward Jacobian is not orientation-preserving lies beyond the lens's fold
-    # (e.g. strong barrel distortion turning back on itself): not a point the lens images.
-    _, Jf = _forward(cam, xy, jac=True)
-    det = Jf[:, 0, 0] * Jf[:, 1, 1] - Jf[:, 0, 1] * Jf[:, 1, 0]
-    bad = ~(det > 0)
-    xy[bad] = np.nan
-    if not jac:
-        return xy, None
-    # Inverse function theorem: d(xy)/d(uv) = (d(uv)/d(xy))^-1 at the undistorted point.
-    J = np.stack([np.stack([Jf[:, 1, 1], -Jf[:, 0, 1]], -1),
-                  np.stack([-Jf[:, 1, 0], Jf[:, 0, 0]], -1)], -2) / det[:, None, None]
-    J[bad] = np.nan
-    return xy, J
+    return distort_points(cam, _points(xy, 2, "xy"))
 
 
 @_nan_for_bad_points
@@ -647,7 +345,7 @@ def undistort(cam: CameraIntrinsics, uv) -> np.ndarray:
     uv : (N, 2) float, pixels (OpenCV convention).
     Returns xy : (N, 2) float, normalised coordinates (X/Z, Y/Z).
     """
-    return _inverse(cam, _points(uv, 2, "uv"), jac=False)[0]
+    return undistort_points(cam, _points(uv, 2, "uv"), jac=False)[0]
 
 
 @_nan_for_bad_points
@@ -656,7 +354,7 @@ def undistort_jacobian(cam: CameraIntrinsics, uv) -> tuple[np.ndarray, np.ndarra
 
     Returns xy : (N, 2), and J : (N, 2, 2), J[i] = d(xy_i)/d(uv_i), per pixel.
     """
-    return _inverse(cam, _points(uv, 2, "uv"), jac=True)
+    return undistort_points(cam, _points(uv, 2, "uv"), jac=True)
 
 
 @_nan_for_bad_points
@@ -677,8 +375,7 @@ def project_jacobian(cam: CameraIntrinsics, P_cam) -> tuple[np.ndarray, np.ndarr
     Returns uv : (N, 2) pixels, and J : (N, 2, 3), J[i] = d(uv_i)/d(P_i), pixels per metre
     (NaN for Z <= 0).
     """
-    model, p = lens_kernel_args(cam)
-    return _project_many(model, p, _points(P_cam, 3, "P_cam"))
+    return project_points(cam, _points(P_cam, 3, "P_cam"))
 
 
 @_nan_for_bad_points

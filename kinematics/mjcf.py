@@ -34,12 +34,19 @@ SERVO_KP = 3.4
 PIXEL_PITCH_M = 1.0e-5
 
 
-def _fmt(v) -> str:
-    return " ".join(repr(float(x)) for x in np.ravel(v))
+def fmt(v, digits: int | None = None) -> str:
+    """Numbers as MJCF attributes take them: space separated, each the shortest repr that reads
+    back exactly, or ``digits`` significant digits (large meshes, where exactness buys nothing).
+
+    v : a number or an array of any shape (flattened in C order).
+    """
+    if digits is None:
+        return " ".join(repr(float(x)) for x in np.ravel(v))
+    return " ".join(f"{float(x):.{digits}g}" for x in np.ravel(v))
 
 
 def _quat_wxyz(R: np.ndarray) -> str:
-    return _fmt(quat_wxyz_from_matrix(R))
+    return fmt(quat_wxyz_from_matrix(R))
 
 
 def effective_joint_inertia(head: HeadGeometry) -> np.ndarray:
@@ -76,21 +83,21 @@ def head_body(head: HeadGeometry, camera: CameraIntrinsics | None = None, prefix
     """
     camera = default_camera() if camera is None else camera
     n = lambda s: prefix + s  # noqa: E731
-    mount = ET.Element("body", name=n("mount"), pos=_fmt(pos), quat=_fmt(quat_wxyz))
+    mount = ET.Element("body", name=n("mount"), pos=fmt(pos), quat=fmt(quat_wxyz))
     for p in head.parts_on("mount"):
         _part_geom(mount, p, n)
     parent = mount
     inertias = link_inertias(head)
     for i, joint in enumerate(head.joints):
-        body = ET.SubElement(parent, "body", name=n(joint.name), pos=_fmt(joint.origin_m))
+        body = ET.SubElement(parent, "body", name=n(joint.name), pos=fmt(joint.origin_m))
         li = inertias[i]
         if explicit_inertia:
             I = li.inertia_com
-            ET.SubElement(body, "inertial", pos=_fmt(li.com_m), mass=repr(li.mass_kg),
-                          fullinertia=_fmt([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]))
+            ET.SubElement(body, "inertial", pos=fmt(li.com_m), mass=repr(li.mass_kg),
+                          fullinertia=fmt([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]))
         servo = head.servo_of(i)
-        ET.SubElement(body, "joint", name=n(joint.name), type="hinge", pos="0 0 0", axis=_fmt(joint.axis),
-                      range=_fmt(joint.range_rad), limited="true", armature=repr(servo.armature_kgm2),
+        ET.SubElement(body, "joint", name=n(joint.name), type="hinge", pos="0 0 0", axis=fmt(joint.axis),
+                      range=fmt(joint.range_rad), limited="true", armature=repr(servo.armature_kgm2),
                       damping="0")
         for p in head.parts_on(joint.name):
             _part_geom(body, p, n, with_mass=not explicit_inertia)
@@ -101,19 +108,19 @@ def head_body(head: HeadGeometry, camera: CameraIntrinsics | None = None, prefix
     # MuJoCo takes the principal point as (image centre - principal point) in pixels, both axes
     # (checked by rendering, tests/kinematics/test_mjcf.py); OpenCV's pixel-centre convention
     # puts the image centre at ((W-1)/2, (H-1)/2).
-    ET.SubElement(parent, "camera", name=n("camera"), pos=_fmt(cam.origin_m), quat=_quat_wxyz(R_link_mjcam),
-                  resolution=f"{W} {H}", sensorsize=_fmt([W * PIXEL_PITCH_M, H * PIXEL_PITCH_M]),
-                  focalpixel=_fmt([camera.fx, camera.fy]),
-                  principalpixel=_fmt([(W - 1) / 2.0 - camera.cx, (H - 1) / 2.0 - camera.cy]))
-    ET.SubElement(parent, "site", name=n("imu"), pos=_fmt(cam.origin_m), quat=_quat_wxyz(cam.R_link_cam),
+    ET.SubElement(parent, "camera", name=n("camera"), pos=fmt(cam.origin_m), quat=_quat_wxyz(R_link_mjcam),
+                  resolution=f"{W} {H}", sensorsize=fmt([W * PIXEL_PITCH_M, H * PIXEL_PITCH_M]),
+                  focalpixel=fmt([camera.fx, camera.fy]),
+                  principalpixel=fmt([(W - 1) / 2.0 - camera.cx, (H - 1) / 2.0 - camera.cy]))
+    ET.SubElement(parent, "site", name=n("imu"), pos=fmt(cam.origin_m), quat=_quat_wxyz(cam.R_link_cam),
                   size="0.002")
     return mount
 
 
 def _part_geom(body: ET.Element, part, n, with_mass: bool = False) -> None:
     rgba = {"servo": "0.15 0.15 0.15 1", "camera": "0.2 0.3 0.8 1", "bracket": "0.7 0.7 0.7 1"}[part.kind]
-    attrs = dict(name=n(part.name), type="box", size=_fmt(np.asarray(part.size_m) / 2.0),
-                 pos=_fmt(part.center_m), rgba=rgba, contype="0", conaffinity="0", group="1")
+    attrs = dict(name=n(part.name), type="box", size=fmt(np.asarray(part.size_m) / 2.0),
+                 pos=fmt(part.center_m), rgba=rgba, contype="0", conaffinity="0", group="1")
     if with_mass:
         attrs["mass"] = repr(part.mass_kg)
     else:
@@ -135,8 +142,8 @@ def head_actuators_and_sensors(head: HeadGeometry, root: ET.Element, prefix: str
         servo = head.servo_of(i)
         kv = 2.0 * math.sqrt(SERVO_KP * I_eff[i])  # critical damping of the position loop
         ET.SubElement(act, "position", name=n(joint.name), joint=n(joint.name), kp=repr(SERVO_KP), kv=repr(kv),
-                      ctrlrange=_fmt(joint.range_rad), ctrllimited="true",
-                      forcerange=_fmt([-servo.stall_torque_nm, servo.stall_torque_nm]), forcelimited="true")
+                      ctrlrange=fmt(joint.range_rad), ctrllimited="true",
+                      forcerange=fmt([-servo.stall_torque_nm, servo.stall_torque_nm]), forcelimited="true")
         ET.SubElement(sens, "jointpos", name=n(f"encoder_{joint.name}"), joint=n(joint.name))
     ET.SubElement(sens, "gyro", name=n("imu_gyro"), site=n("imu"))
     ET.SubElement(sens, "accelerometer", name=n("imu_accel"), site=n("imu"))
@@ -147,7 +154,7 @@ def build_mjcf(head: HeadGeometry, camera: CameraIntrinsics | None = None, *, ti
     """A complete MJCF model (string) of the head on a fixed mount, ready for ``MjModel.from_xml_string``."""
     root = ET.Element("mujoco", model=f"wvr_head_{head.name}")
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
-    ET.SubElement(root, "option", timestep=repr(timestep), gravity=_fmt([0, 0, -GRAVITY]), integrator="implicitfast")
+    ET.SubElement(root, "option", timestep=repr(timestep), gravity=fmt([0, 0, -GRAVITY]), integrator="implicitfast")
     vis = ET.SubElement(root, "visual")
     ET.SubElement(vis, "global", offwidth="1280", offheight="960")
     world = ET.SubElement(root, "worldbody")

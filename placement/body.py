@@ -45,6 +45,9 @@ JOINT_OF: dict[str, str] = {
 }
 SEGMENT_INDEX = {s: i for i, s in enumerate(SEGMENTS)}
 PARENT_INDEX = np.array([-1 if PARENT[s] is None else SEGMENT_INDEX[PARENT[s]] for s in SEGMENTS])
+#: A face whose height is below this fraction of its longest edge is degenerate (zero area up to
+#: rounding): its own cross product gives no reliable normal (:meth:`Body.face_frames`).
+DEGENERATE_FACE = 1e-9
 
 
 class BodyError(ValueError):
@@ -178,11 +181,33 @@ class Body:
         return trimesh.Trimesh(v, self.faces, process=False)
 
     def face_frames(self, pose: Pose | Motion | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(centroids, unit normals) of every face: (F, 3) each, or (T, F, 3) over a motion."""
+        """(centroids, unit normals) of every face: (F, 3) each, or (T, F, 3) over a motion.
+
+        A degenerate face (zero area: coincident or collinear vertices, as mesh exports leave)
+        has no normal of its own; it takes the area-weighted mean normal of the faces sharing
+        a vertex with it, so its camera still sits on the surface. A BodyError names a
+        degenerate face whose neighbours give no direction either.
+        """
         v = self.vertices if pose is None else self.posed_vertices(pose)
         tri = v[..., self.faces, :]
         n = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-        return tri.mean(axis=-2), n / np.linalg.norm(n, axis=-1, keepdims=True)
+        norm = np.linalg.norm(n, axis=-1)
+        edges2 = np.stack([np.sum((tri[..., k, :] - tri[..., (k + 1) % 3, :]) ** 2, axis=-1) for k in range(3)])
+        flat = norm <= DEGENERATE_FACE * edges2.max(axis=0)   # |cross| = twice the area
+        if flat.any():
+            n, norm = n.copy(), norm.copy()
+            for f in np.flatnonzero(flat.reshape(-1, len(self.faces)).any(axis=0)):
+                # Unnormalised cross products weight each neighbour by its area.
+                shared = np.isin(self.faces, self.faces[f]).any(axis=1)
+                m = n[..., shared, :].sum(axis=-2)
+                m_norm = np.linalg.norm(m, axis=-1)
+                here = flat[..., f]
+                if np.any(here & ~(m_norm > 0)):
+                    raise BodyError(f"face {f} (vertices {self.faces[f].tolist()}) has zero area and its neighbours "
+                                    "give no normal either; remove the degenerate faces from the mesh")
+                n[..., f, :] = np.where(here[..., None], m, n[..., f, :])
+                norm[..., f] = np.where(here, m_norm, norm[..., f])
+        return tri.mean(axis=-2), n / norm[..., None]
 
     def check(self) -> "Body":
         """Refuse bodies in the wrong units or orientation, with a message saying what was expected."""

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kinematics.textnumbers import first_non_number
+
 from .body import BodyError
 
 __all__ = ["BvhData", "read_bvh"]
@@ -252,7 +254,7 @@ def read_bvh(path) -> BvhData:
         try:
             frames[k] = [float(v) for v in vals]
         except ValueError:
-            bad = next(v for v in vals if not _is_float(v))
+            bad = first_non_number(vals)
             raise BodyError(f"{name} line {n}: cannot read {bad!r} as a number; "
                             f"expected {n_channels} numbers") from None
     if not np.all(np.isfinite(frames)):
@@ -263,11 +265,3 @@ def read_bvh(path) -> BvhData:
         end_sites=np.array(end_sites, int), end_offsets=np.array(end_offsets, float).reshape(-1, 3),
         frames=frames, frame_time=dt,
     )
-
-
-def _is_float(s: str) -> bool:
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return False

@@ -1,7 +1,8 @@
 """The seam between a control program and a head: the :class:`Robot` protocol and the types that
 cross it. The MuJoCo twin implements it (``runtime.twin.twin.Twin``) and so does the hardware rig
 (``runtime.drivers.rig.HardwareRig``); the closed loop (``runtime.apps.closed_loop``) is typed on
-it and never knows which it drives.
+it and never knows which it drives. Both are driven through the same safety chain
+(``runtime.safety.SafeRobot``, a Robot wrapping a Robot), composed in ``wvr.assemble``.
 
 A robot is driven one camera frame at a time::
 
@@ -20,6 +21,7 @@ z forward), the accelerometer giving specific force (``+9.81`` along world up at
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -27,6 +29,11 @@ import numpy as np
 
 from kinematics import HeadGeometry
 from kinematics.camera import CameraIntrinsics
+
+#: The controlled-motion limit on every joint rate (paper, section 5: ~30 deg/s), the one default
+#: of the gaze controller, the safety chain, rig.toml and the command line (deg/s, and rad/s).
+MOTION_LIMIT_DEG_S = 30.0
+MOTION_LIMIT_RAD_S = math.radians(MOTION_LIMIT_DEG_S)
 
 #: What the joint angles of an observation are: read back from encoders, or the commands the
 #: servos were last sent (hobby servos report nothing; the Maestro reports its own ramped output).

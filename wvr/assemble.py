@@ -2,6 +2,11 @@
 a run on them needs (the wearer's body for a scenario, a person's clicks on the first image).
 The CLI, the demo, the tests and the benchmarks build robots here; nothing in the packages
 imports this module.
+
+Every closed loop drives its robot through the same safety chain (``runtime.safety.SafeRobot``:
+joint range and rate, the controlled-motion limit, the watchdog, the latched stop): the twin
+through :func:`safe_twin` (``wvr sim run``, the station on the twin), the rig through
+:func:`make_rig` (``wvr run --rig``, the station on the rig).
 """
 
 from __future__ import annotations
@@ -71,6 +76,16 @@ def make_twin(head=None, mount=None, camera=None, ideal_imu: bool = False, ideal
     return Twin(_head(head), _camera(camera), m, wearer_for, **twin_options)
 
 
+def safe_twin(twin, motion_limit_rad_s: float | None = None):
+    """The twin behind the safety chain the rig has (runtime.safety.SafeRobot), its latch in
+    memory; ``motion_limit_rad_s`` the run's controlled-motion limit (None: the default). The
+    twin itself stays the truth source and the thing to configure."""
+    from runtime.safety import SafeRobot, SafetySettings
+
+    settings = SafetySettings() if motion_limit_rad_s is None else SafetySettings(motion_limit_rad_s=motion_limit_rad_s)
+    return SafeRobot(twin, settings, reset_hint="reset the station's stop (or start a new run) once it is safe")
+
+
 def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
     """A simulated person's clicks on the twin's current (first) image: the Target the closed
     loop starts from. Reads the twin's truth: the composition root's job, not the runtime's."""
@@ -81,8 +96,8 @@ def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
 
 def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: int = 0, settings=None,
                 progress: bool = True, on_period=None, start_target=None, click_error_px: float = CLICK_ERROR_PX) -> dict:
-    """The closed loop on the twin for a scenario: the twin as the Robot and the TruthSource
-    for scoring, started from a simulated person's clicks on its first image, ``click_error_px``
+    """The closed loop on the twin for a scenario: the twin, behind the safety chain
+    (:func:`safe_twin`), as the Robot and the twin as the TruthSource for scoring, started from a simulated person's clicks on its first image, ``click_error_px``
     off (or from ``start_target``). Writes the files of ``wvr sim run`` into ``out``; returns
     the summary."""
     from runtime.apps.closed_loop import run_closed_loop
@@ -96,8 +111,9 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
         raise ValueError(f"click error {click_error_px!r} px must be a distance >= 0 (pixels)")
     start = start_target if start_target is not None else \
         (lambda obs: clicked_target(twin, error_px=click_error_px, seed=seed))
-    s = run_closed_loop(twin, task, out, start_target=start, seconds=secs,
-                        settings=settings or ControllerSettings(), progress=progress, truth=twin, label=sc.name,
+    settings = settings or ControllerSettings()
+    s = run_closed_loop(safe_twin(twin, settings.motion_limit_rad_s), task, out, start_target=start, seconds=secs,
+                        settings=settings, progress=progress, truth=twin, label=sc.name,
                         task_info={"scenario": sc.name, "seed": seed}, on_period=on_period)
     from kinematics import save_head
 
@@ -106,9 +122,13 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
 
 
 def make_rig(rig):
-    """A HardwareRig from a rig.toml path (or a loaded RigConfig): opens the Maestro, the camera
-    and the IMU; a missing or busy port is a one-line error."""
+    """The hardware rig from a rig.toml path (or a loaded RigConfig) behind the safety chain
+    (runtime.safety.SafeRobot with rig.toml's [safety] and its latch file): opens the servo
+    board, the camera and the IMU; a missing or busy port is a one-line error. The rig itself is
+    ``.robot``; the chain's counts ``.report()``."""
     from runtime.drivers.rig import HardwareRig, RigConfig, load_rig
+    from runtime.safety import EStop, SafeRobot
 
     cfg = rig if isinstance(rig, RigConfig) else load_rig(rig)
-    return HardwareRig(cfg)
+    return SafeRobot(HardwareRig(cfg), cfg.safety, EStop(cfg.estop_file),
+                     reset_hint=f"clear it with wvr head --rig {cfg.path} reset once it is safe")

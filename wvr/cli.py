@@ -30,8 +30,11 @@ from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composit
 
 # Every package's bad-input exception derives from ValueError and carries a one-line message.
 from runtime.drivers import DriverError  # noqa: E402
+from runtime.robot import MOTION_LIMIT_DEG_S  # noqa: E402
+from runtime.safety import EStopLatched  # noqa: E402
 
-USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError)
+USER_ERRORS = (HeadFileError, CameraFileError, ServoCommandError, FileNotFoundError, ValueError, DriverError,
+               EStopLatched)
 #: A message longer than this is cut: a value echoed from a file can be megabytes long.
 MAX_MESSAGE = 400
 
@@ -187,13 +190,24 @@ def cmd_kinematics_picture(args) -> int:
     return 0
 
 
+def _design_seed(text: str) -> int:
+    """--seed: a whole number from 0 to 2**32 - 1 (numpy's seeds)."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = None
+    if v is None or not 0 <= v < 2**32:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number from 0 to {2**32 - 1}")
+    return v
+
+
 def cmd_design_optimise(args) -> int:
     from design.study import optimise
     from design.sweep_file import load_sweep
 
     spec = load_sweep(args.sweep)
     o = optimise(spec, args.out, evaluations=args.evaluations, seed=args.seed, algorithm=args.algorithm,
-                 resume=args.resume, workers=args.workers, scheduler=args.scheduler)
+                 resume=args.resume, workers=args.workers, scheduler=args.scheduler, dashboard=args.dashboard)
     print(f"{o.evaluations} evaluations ({o.evaluated} computed now, {o.reused} reused), "
           f"{o.feasible} feasible, front of {o.front_size}")
     if o.chosen is not None:
@@ -211,6 +225,19 @@ def cmd_design_evaluate(args) -> int:
     crit, cons = score_head(load_head(args.head), ctx)
     for k, v in {**crit, **cons}.items():
         print(f"{k:24s} {v:.6g}")
+    return 0
+
+
+def cmd_design_compare(args) -> int:
+    from design.convergence import fraction_to_match, read_evaluations
+
+    c = fraction_to_match(*read_evaluations(args.run), *read_evaluations(args.baseline), at=args.at)
+    kind = "exact" if c.exact else "approximate"
+    if c.needed is None:
+        print(f"never reached: {c.reached:.5f} at {c.at} evaluations against the baseline's {c.target:.5f} ({kind})")
+    else:
+        print(f"fraction {c.fraction:.3f}: {c.needed} of {c.at} evaluations reach the baseline's hypervolume "
+              f"{c.target:.5f} ({kind}; {c.reached:.5f} at {c.at})")
     return 0
 
 
@@ -356,7 +383,7 @@ def cmd_track(args) -> int:
             raise ValueError("--servo runs the closed loop in the twin: give --scenario NAME (and no SEQ)")
         if args.seq:
             raise ValueError(f"--servo runs in the twin, not on a sequence: leave out {args.seq!r}")
-        args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, 30.0
+        args.task, args.target, args.targets, args.dwell, args.limit = "track", None, None, 2.0, MOTION_LIMIT_DEG_S
         return cmd_sim_run(args)
     if not args.seq:
         raise ValueError("give the sequence folder SEQ (or --servo --scenario NAME for the closed loop)")
@@ -499,7 +526,7 @@ def cmd_head(args) -> int:
     import math
 
     from runtime.drivers.rig import load_rig, open_servo_board
-    from runtime.drivers.safety import EStop
+    from runtime.safety import EStop
 
     cfg = load_rig(args.rig)
     estop = EStop(cfg.estop_file)
@@ -661,29 +688,45 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_station(args) -> int:
-    import math
-
     from runtime.apps.station.record import check_out
     from runtime.apps.station.station import Station, resolve_token, serve
     from runtime.gaze import ControllerSettings
 
-    resolve_token(args.token)                   # bad input is refused before anything starts
-    if args.out:
-        check_out(args.out)
+    # Bad input is refused before anything starts (no address printed, no folder made).
+    resolve_token(args.token)
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port {args.port} is not a port number (0-65535; 0: any free one)")
-    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     if (args.scenario is None) == (args.rig is None):
         raise ValueError("wvr station needs one of --scenario NAME (the twin) or --rig rig.toml (the hardware)")
+    if not (math.isfinite(args.limit) and args.limit > 0):
+        raise ValueError(f"--limit {args.limit:g} deg/s: the controlled-motion limit must be above 0 (the paper's is 30)")
     if args.scenario is not None:
+        _check_limit(args.limit, args.head)
+        if args.seed < 0:
+            raise ValueError(f"--seed {args.seed}: give a seed of 0 or more")
+        if not (math.isfinite(args.click_error) and 0.0 <= args.click_error <= 50.0):
+            raise ValueError(f"--click-error {args.click_error}: give the operator's click error in pixels, 0 to 50")
+    if args.out:
+        check_out(args.out)
+    if args.scenario is not None:
+        from runtime.twin.operator import TargetHidden
         from runtime.twin.scenarios import get_scenario
-        from wvr.assemble import clicked_target
+        from wvr.assemble import clicked_target, safe_twin
 
         sc = get_scenario(args.scenario)
-        robot = make_twin(args.head, args.mount, args.camera)
-        robot.configure(sc, seed=args.seed, seconds=args.seconds)
-        start, truth, seconds = (lambda obs: clicked_target(robot, args.click_error, args.seed)), robot, \
-            (args.seconds if args.seconds is not None else sc.seconds)
+        twin = make_twin(args.head, args.mount, args.camera)
+        twin.configure(sc, seed=args.seed, seconds=args.seconds)
+        robot = safe_twin(twin, math.radians(args.limit))
+
+        def start(obs):
+            try:
+                return clicked_target(twin, args.click_error, args.seed)
+            except TargetHidden as e:
+                # The twin's own hint names sim record's options; the station's place is its --seed.
+                raise TargetHidden(f"{str(e).split('; use another')[0]}; choose another --seed (the station's place "
+                                   "follows it)") from None
+
+        truth, seconds = twin, (args.seconds if args.seconds is not None else sc.seconds)
         notes = {"scenario": sc.name, "seed": args.seed}
     else:
         from runtime.drivers.rig import load_rig
@@ -691,12 +734,17 @@ def cmd_station(args) -> int:
         from wvr.assemble import make_rig
 
         cfg = load_rig(args.rig)
+        top = math.degrees(float(np.min(cfg.head.max_speed)))
+        if args.limit > top + 1e-9:
+            raise ValueError(f"--limit {args.limit:g} deg/s: the controlled-motion limit must be at most the servos' "
+                             f"{top:.0f} deg/s (the paper's is 30)")
         if cfg.start_target is None:
             raise ValueError(f"{args.rig}: the station starts SLAM from a known target: add [start] target = "
                              "\"target.toml\" (known points and their pixels in the first image)")
         start, truth, seconds = load_target(cfg.start_target), None, args.seconds
         robot = make_rig(cfg)
         notes = {"rig": str(Path(args.rig).resolve())}
+    settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
 
     def finish():
         # In the loop's thread, as it ends: the rig's safe stop (hold, home slowly); the twin's
@@ -709,10 +757,8 @@ def cmd_station(args) -> int:
                       seconds=seconds, settings=settings, notes=notes, on_finish=finish)
 
     def ready(st):
-        print(f"station: open {st.url}", flush=True)
-        print(f"station: the wearer's page is {st.public_url}wearer, opened with the same token", flush=True)
-        if not st.loopback:
-            print(f"station: listening on {args.host}, beyond this machine: keep the token to yourself", flush=True)
+        for line in st.address_lines():
+            print(line, flush=True)
 
     try:
         s = serve(station, on_ready=ready)
@@ -795,17 +841,25 @@ def build_parser() -> argparse.ArgumentParser:
     opt.add_argument("--sweep", help="sweep.toml (default: the shipped default sweep; see sweep-template)")
     opt.add_argument("--out", required=True, help="output directory")
     opt.add_argument("--evaluations", type=_positive_int, help="evaluation budget (default: the sweep file's)")
-    opt.add_argument("--seed", type=int, help="random seed (default: the sweep file's)")
+    opt.add_argument("--seed", type=_design_seed, help="random seed, 0 or more (default: the sweep file's)")
     opt.add_argument("--algorithm", choices=["nsga3", "random"], help="default: the sweep file's")
     group = opt.add_mutually_exclusive_group()
     group.add_argument("--workers", type=_positive_int, help="evaluate on a local Dask cluster of N worker processes")
     group.add_argument("--scheduler", help="evaluate on an existing Dask cluster, e.g. tcp://HOST:8786")
+    opt.add_argument("--dashboard", metavar="HOST:PORT", help="with --workers: where Dask's dashboard listens "
+                     "(default loopback, a free port; it has no authentication)")
     opt.add_argument("--resume", action="store_true", help="continue a killed sweep in --out")
     opt.set_defaults(func=cmd_design_optimise)
     ev = dsub.add_parser("evaluate", help="print the 7 criteria and the constraints of a head")
     ev.add_argument("head", help="head.toml, or 'reference'")
     ev.add_argument("--sweep", help="sweep.toml for the workload and settings (default: the default sweep)")
     ev.set_defaults(func=cmd_design_evaluate)
+    cmp_ = dsub.add_parser("compare", help="share of a baseline's evaluations a sweep needs to reach the "
+                           "baseline's hypervolume (two evaluations.csv, or their folders)")
+    cmp_.add_argument("run", help="the sweep's evaluations.csv (or folder)")
+    cmp_.add_argument("baseline", help="the baseline's, e.g. an --algorithm random sweep of the same sweep file")
+    cmp_.add_argument("--at", type=_positive_int, default=2520, help="the baseline's budget (default 2520)")
+    cmp_.set_defaults(func=cmd_design_compare)
     tpl = dsub.add_parser("sweep-template", help="print the default sweep.toml to start your own")
     tpl.set_defaults(func=cmd_design_template)
 
@@ -855,8 +909,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "known rectangle's centre)")
     run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     run.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
-    run.add_argument("--limit", type=float, default=30.0,
-                     help="controlled-motion limit on every joint rate, deg/s (default 30; at most the servos')")
+    run.add_argument("--limit", type=float, default=MOTION_LIMIT_DEG_S,
+                     help="controlled-motion limit on every joint rate, deg/s (default %(default)g; at most the servos')")
     run.add_argument("--init", type=_box, metavar="X,Y,W,H",
                      help="track: the region in the first frame, pixels (default: the known rectangle)")
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
@@ -897,7 +951,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "default for fixate: the start target's centre)")
     rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     rr.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
-    rr.add_argument("--limit", type=_positive, default=30.0, help="controlled-motion limit, deg/s (at most rig.toml's)")
+    rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
+                    help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")
     rr.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
     rr.add_argument("--recentre", type=_nonnegative, default=0.0, metavar="PER_S",
@@ -994,7 +1049,8 @@ def build_parser() -> argparse.ArgumentParser:
     stn.add_argument("--token", help="the access token (default: a new random one, printed once)")
     stn.add_argument("--out", help="folder for the recording when the station stops (trajectory.tum, events.csv, "
                      "labels.toml; groundtruth.txt on the twin)")
-    stn.add_argument("--limit", type=float, default=30.0, help="controlled-motion limit, deg/s (default 30)")
+    stn.add_argument("--limit", type=float, default=MOTION_LIMIT_DEG_S,
+                     help="controlled-motion limit, deg/s (default %(default)g)")
     stn.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="twin: how far off the simulated person clicks the target's corners (default 2.5)")
     stn.set_defaults(func=cmd_station)

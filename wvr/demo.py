@@ -330,11 +330,11 @@ def stage_station(out: Path, context: dict) -> str:
     from runtime.apps.station.browser import headless_browser
     from runtime.apps.station.client import StationClient
     from runtime.twin.scenarios import get_scenario
-    from wvr.assemble import clicked_target
+    from wvr.assemble import clicked_target, safe_twin
 
     twin = _twin(out, context)
     twin.configure(get_scenario("workbench-static"), seed=0, seconds=60.0)
-    st = Station(twin, lambda obs: clicked_target(twin, seed=0), port=0, out=out / "session", truth=twin,
+    st = Station(safe_twin(twin), lambda obs: clicked_target(twin, seed=0), port=0, out=out / "session", truth=twin,
                  seconds=60.0, on_finish=twin.close, notes={"scenario": "workbench-static", "seed": 0})
     calls, scores = [], []
     try:

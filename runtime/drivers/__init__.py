@@ -1,7 +1,7 @@
 """Drivers for the real head (paper, section 2): the Pololu Maestro servo controller or Dynamixel
 X-series smart servos, the camera (OpenCV VideoCapture, files, image patterns), the IMU (BNO085
-UART-RVC, a text line protocol), the layered safety chain, and the rig (rig.toml -> a
-:class:`runtime.robot.Robot`)."""
+UART-RVC, a text line protocol) and the rig (rig.toml -> a :class:`runtime.robot.Robot`, driven
+through the safety chain of :mod:`runtime.safety`)."""
 
 
 class DriverError(RuntimeError):

@@ -1,6 +1,9 @@
 """The hardware rig: ``rig.toml`` read and checked, and :class:`HardwareRig`, a
 :class:`runtime.robot.Robot` over the servos (a Pololu Maestro with hobby servos, or Dynamixel
-X-series smart servos), the camera and the IMU with the safety chain in between.
+X-series smart servos), the camera and the IMU. It sends what it is given: ``wvr.assemble.make_rig``
+wraps it in the safety chain (``runtime.safety.SafeRobot``: limits, watchdog, latched stop),
+the same chain the twin is driven through; the rig adds the pulses' clipping and the board's
+own speed and acceleration limits.
 
 rig.toml (the contract; the keys marked optional may be left out)::
 
@@ -37,8 +40,8 @@ rig.toml (the contract; the keys marked optional may be left out)::
     accel_bias = [0, 0, 0]        # optional, m/s^2, camera frame
     clock_offset_ms = 0.0         # optional: the IMU's stamps' measured lag behind the camera's,
                                   # where SLAM starts learning it (it learns up to ~20 ms alone)
-    [safety]                      # optional table: runtime.drivers.safety.SafetySettings
-    motion_limit_deg_s = 30.0
+    [safety]                      # optional table: runtime.safety.SafetySettings
+    motion_limit_deg_s = 30.0     # default runtime.robot.MOTION_LIMIT_DEG_S
     pose_timeout_s = 0.5
     hold_s = 1.0
     home_rate_deg_s = 20.0
@@ -79,12 +82,12 @@ from kinematics import JOINT_NAMES, HeadGeometry, load_head, reference_head
 from kinematics.camera import CameraIntrinsics, load_camera
 from kinematics.tomlfile import read_toml
 
-from ..robot import JOINTS_COMMANDED, JOINTS_MEASURED, ImuSamples, JointCommand, Observation, RobotInfo
+from ..robot import JOINTS_COMMANDED, JOINTS_MEASURED, MOTION_LIMIT_DEG_S, ImuSamples, JointCommand, Observation, RobotInfo
+from ..safety import SafetySettings
 from . import DriverError
 from .calibration import ServoCalibration
 from .dynamixel import DynamixelBoard, DynamixelBus, TickCalibration
 from .maestro import Maestro, accel_units, speed_units
-from .safety import EStop, SafetyChain, SafetySettings
 
 
 class RigFileError(ValueError):
@@ -301,7 +304,7 @@ def load_rig(path: str | Path) -> RigConfig:
 
     sf = d.get("safety", {})
     _check_keys(path, sf, "safety", "safety")
-    limit = _number(path, sf, "motion_limit_deg_s", "safety", 30.0)
+    limit = _number(path, sf, "motion_limit_deg_s", "safety", MOTION_LIMIT_DEG_S)
     if math.radians(limit) > math.radians(speed) + 1e-9:
         _fail(path, "safety.motion_limit_deg_s", f"{limit:g} deg/s exceeds the board's speed limit {speed:g} deg/s")
     hb = sf.get("heartbeat_timeout_s")
@@ -413,9 +416,11 @@ def open_servo_board(cfg: RigConfig):
 
 class HardwareRig:
     """The real head as a :class:`runtime.robot.Robot`: ``reset`` starts the board and reads the
-    first frame, ``step`` passes the command through the safety chain, sends it, and waits for
-    the next frame; the joint angles observed are the board's ramped outputs (hobby servos have
-    no encoders: ``q_source = "commanded"``) or a Dynamixel's encoders (``"measured"``)."""
+    first frame, ``step`` sends the command and waits for the next frame; the joint angles
+    observed are the board's ramped outputs (hobby servos have no encoders: ``q_source =
+    "commanded"``) or a Dynamixel's encoders (``"measured"``). Drive it through
+    ``wvr.assemble.make_rig``, which puts the safety chain (``runtime.safety.SafeRobot``, with
+    ``cfg.safety`` and the latch in ``cfg.estop_file``) in front of it."""
 
     def __init__(self, cfg: RigConfig):
         from .camera import open_camera
@@ -436,8 +441,6 @@ class HardwareRig:
         except Exception:
             self.close()
             raise
-        self.estop = EStop(cfg.estop_file)
-        self.chain = SafetyChain(cfg.head, np.zeros(3), cfg.safety, self.estop)
         self.t = None
         self.sent_qus: list[list[int]] = []
         self.closed = False
@@ -455,15 +458,11 @@ class HardwareRig:
         return self.imu.take_until(t, wait_s=0.1)
 
     def reset(self) -> Observation:
-        if self.estop.tripped:
-            raise DriverError(f"the emergency stop is latched ({self.estop.reason}); clear it with "
-                              f"wvr head --rig {self.cfg.path} reset once it is safe")
         self.board.start()
         q0 = self.board.positions()
         if np.any(q0 < self.cfg.head.lower - 0.02) or np.any(q0 > self.cfg.head.upper + 0.02):
             raise DriverError(f"the board's outputs {np.degrees(q0).round(1).tolist()} deg lie outside the head's ranges; "
                               f"home it first (wvr head --rig {self.cfg.path} home)")
-        self.chain.reset_to(np.clip(q0, self.cfg.head.lower, self.cfg.head.upper))
         frame = self.camera.read(max(self.cfg.camera_timeout_s, 5.0))
         if self.imu is not None:
             self.imu.anchor_at(frame.t)
@@ -474,8 +473,7 @@ class HardwareRig:
     def step(self, command: JointCommand) -> Observation:
         if self.t is None:
             raise RuntimeError("call reset() first")
-        q = self.chain.apply(command, self.t, 1.0 / self.cfg.fps)
-        self.sent_qus.append(self.board.send(q))
+        self.sent_qus.append(self.board.send(command.q))
         self.board.check_errors()
         frame = self.camera.read(self.cfg.camera_timeout_s)
         # The board's outputs when the frame has come (read before it, they were the period's
@@ -485,17 +483,15 @@ class HardwareRig:
         self.t = frame.t
         return Observation(frame.t, frame.image, imu, q_board, self.q_source)
 
-    def heartbeat(self, t: float) -> None:
-        self.chain.watchdog.heartbeat(t)
-
     def safe_stop(self, reason: str = "", home: bool = True) -> str:
-        """Hold, then go home slowly, never raising: returns what happened (for the session's notes)."""
+        """Hold, then (``home``) go home slowly, never raising: returns what happened (for the
+        session's notes). The safety chain asks for no homing while its stop is latched."""
         notes = []
         try:
             q_now = self.board.positions()
             self.board.send(q_now)                                 # hold
             notes.append("held")
-            if home and not self.estop.tripped:
+            if home:
                 self.board.move_slowly(self.cfg.home, self.cfg.safety.home_rate_rad_s, timeout_s=15.0)
                 notes.append("homed")
         except DriverError as e:

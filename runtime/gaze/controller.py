@@ -11,8 +11,9 @@ Each control period (one camera frame):
    the frame) and the mount keeps moving with the wearer, so the mount pose is predicted
    ``lead_s`` ahead: its angular rate is the gyro's (camera frame) less the joints' own
    contribution, its velocity SLAM's camera velocity less the head's and the rotation's lever arm.
-3. **Desired angles.** The mode's target (a world point, a world attitude, a body direction,
-   an image point) goes through the fixation IK with the image-vertical rule.
+3. **Desired angles.** The period's estimate (:class:`~.estimate.GazeEstimate`, frozen) goes
+   to the active mode, whose target (a world point, a world attitude, a body direction, an
+   image point) goes through the fixation IK with the image-vertical rule.
 4. **Rates.** The rate QP (qp.py) follows that motion within the joint ranges, the
    controlled-motion limit (default 30 deg/s, never above the servo's 10 rad/s) and smoothness.
 5. **Command.** The rates go through the kinematics servo filter; its output is what is sent.
@@ -30,15 +31,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics import HeadGeometry, ServoFilter, forward_kinematics, gaze_at_direction, gaze_at_point
+from kinematics import HeadGeometry, ServoFilter, forward_kinematics, gaze_at_direction
 from kinematics.camera import CameraIntrinsics
 
+from ..robot import MOTION_LIMIT_RAD_S
 from .attitude import AttitudeFilter
+from .estimate import GazeEstimate, ik_point, up_mount
 from .modes import Body, Desired, Fixate, Hold, Mode, Saccade, Slave, Stabilise, Track
 from .prompts import Prompt, wearer_prompt
 from .qp import RateQP, RateQPSettings
-
-UP = np.array([0.0, 0.0, 1.0])
 
 
 class GazeRefused(ValueError):
@@ -52,13 +53,14 @@ class GazeRefused(ValueError):
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    """motion_limit_rad_s : the controlled-motion limit on every joint rate (paper: ~30 deg/s);
-    must not exceed the servos' own. lead_s : how far ahead the mount's pose is predicted
-    (None: one control period plus ``servo_lag_s``). prompt_every_s : how often a standing
+    """motion_limit_rad_s : the controlled-motion limit on every joint rate (default
+    runtime.robot.MOTION_LIMIT_RAD_S, the paper's ~30 deg/s); must not exceed the servos' own.
+    lead_s : how far ahead the mount's pose is predicted (None: one control period plus
+    ``servo_lag_s``). prompt_every_s : how often a standing
     prompt is repeated. landed_rad : a saccade has landed once the estimated gaze error is below
     this and the joints have (nearly) stopped."""
 
-    motion_limit_rad_s: float = math.radians(30.0)
+    motion_limit_rad_s: float = MOTION_LIMIT_RAD_S
     lead_s: float | None = None
     servo_lag_s: float = 0.01
     prompt_every_s: float = 1.0
@@ -203,7 +205,7 @@ class GazeController:
     def _aim_at(self, mode: Fixate) -> None:
         p = mode.p_world
         if self.T_world_mount is not None:
-            res = self.ik_point(p, self.T_world_mount)
+            res = ik_point(self.head, p, self.T_world_mount, self.filter.q)
             if not res.reachable:
                 prompt = wearer_prompt(self.head, self.T_world_mount, p, self.filter.q)
                 self.emit(prompt, force=True)
@@ -212,12 +214,16 @@ class GazeController:
 
     # ------------------------------------------------------------------ estimation
     def up_mount(self) -> np.ndarray:
-        if self.T_world_mount is not None:
-            return self.T_world_mount[:3, :3].T @ UP
-        if self.attitude.R is not None:
-            R_mount_cam = self.pose_enc.R_mount_cam
-            return R_mount_cam @ self.attitude.R.T @ UP
-        return UP
+        """(3,) world up in the mount frame, from the present estimate."""
+        return up_mount(self.T_world_mount, self.attitude.R, self.pose_enc.R_mount_cam)
+
+    def estimate(self, T_world_cam=None) -> GazeEstimate:
+        """The present estimate as the modes see it (frozen): built once per period by :meth:`step`.
+        T_world_cam : (4, 4) this period's SLAM pose, or None."""
+        return GazeEstimate(t=self.t, q_enc=self.q_enc, q=self.filter.q, T_mount_cam=self.pose_enc.T_mount_cam,
+                            T_world_cam=T_world_cam, T_world_mount=self.T_world_mount, v_mount=self.v_mount,
+                            w_mount=self.w_mount, R_world_cam=self.attitude.R, lead=self.lead,
+                            prompt_due=self.prompt_due())
 
     def _estimate_mount(self, T_world_cam, v_world) -> None:
         pose = self.pose_enc
@@ -251,18 +257,6 @@ class GazeController:
             self.v_mount = (T[:3, 3] - self.T_world_mount[:3, 3]) / self.dt
         self.T_world_mount = T
 
-    def predicted_mount(self, lead: float | None = None) -> np.ndarray:
-        """(4, 4) the mount's pose ``lead`` s ahead at constant velocity."""
-        lead = self.lead if lead is None else lead
-        T = self.T_world_mount.copy()
-        T[:3, :3] = Rotation.from_rotvec(self.w_mount * lead).as_matrix() @ T[:3, :3]
-        T[:3, 3] = T[:3, 3] + self.v_mount * lead
-        return T
-
-    def ik_point(self, p_world, T_world_mount):
-        R, o = T_world_mount[:3, :3], T_world_mount[:3, 3]
-        return gaze_at_point(self.head, R.T @ (p_world - o), R.T @ UP, q_current=self.filter.q)
-
     # ------------------------------------------------------------------ control
     def prompt_due(self) -> bool:
         """Whether a standing prompt would be repeated now: its search (up to 80 IK solves) is
@@ -270,6 +264,7 @@ class GazeController:
         return self.t - self._last_prompt_t >= self.settings.prompt_every_s
 
     def emit(self, prompt: Prompt, force: bool = False) -> Prompt | None:
+        """Record a wearer prompt if one is due (or ``force``); returns it, or None if not emitted."""
         if prompt.kind == "ok":          # reachable from where the wearer is now: nothing to ask
             return None
         if force or self.prompt_due():
@@ -302,8 +297,9 @@ class GazeController:
         if T_world_cam is not None and not np.isfinite(np.asarray(T_world_cam, float)).all():
             T_world_cam = None
         self._estimate_mount(T_world_cam, v_world)
-        goal: Desired = self.active.desired(self)
-        q_des, err, reachable, prompt = goal.q, goal.error_rad, goal.reachable, goal.prompt
+        goal: Desired = self.active.desired(self.estimate(T_world_cam), self.head, self.camera)
+        q_des, err, reachable = goal.q, goal.error_rad, goal.reachable
+        prompt = self.emit(goal.prompt) if goal.prompt is not None else None
         q = self.filter.q
         if q_des is None:
             qd_des = np.zeros(3)

@@ -12,35 +12,36 @@ Track      pixel (2,)            turns the optic axis onto an image point (a 2D 
 Slave      joint angles (3,) rad follows angles given from outside (a tracked person's head)
 ========== ===================== ================================================================
 
-Each mode's :meth:`desired` turns its target into the joint angles the controller should reach
-this period (through the fixation IK and the image-vertical rule), given the controller's
-estimate of where the mount is (:class:`GazeEstimate`). The controller owns the estimation and
-the rate QP; a mode owns only the geometry of its target.
+Each mode's ``desired(estimate, head, camera)`` turns its target into the joint angles the
+controller should reach this period (through the fixation IK and the image-vertical rule), given
+the period's :class:`~.estimate.GazeEstimate` (where the mount is, how it turns, the joints, the
+IMU's attitude): a frozen snapshot, the only thing of the controller a mode reads. The
+controller owns the estimation, the rate QP and the prompts' rate limit; a mode owns only the
+geometry of its target.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics import gaze_at_direction
-from kinematics.camera import unproject
+from kinematics import HeadGeometry, gaze_at_direction
+from kinematics.camera import CameraIntrinsics, unproject
 
+from .estimate import GazeEstimate, ik_point
 from .prompts import Prompt, wearer_prompt
-
-if TYPE_CHECKING:  # the controller passes itself; no import at run time (no cycle)
-    from .controller import GazeController
 
 
 @dataclass(frozen=True)
 class Desired:
     """One period's goal. q : (3,) the angles to reach, or None to hold. error_rad : the
     estimated error now (angle to the target, or attitude error), NaN if unknown. reachable :
-    False when the target is out of reach this period. prompt : a wearer prompt to emit."""
+    False when the target is out of reach this period. prompt : a wearer prompt to emit (the
+    controller records it, at most every ``prompt_every_s``)."""
 
     q: np.ndarray | None
     error_rad: float = float("nan")
@@ -51,7 +52,7 @@ class Desired:
 class Mode(Protocol):
     name: str
 
-    def desired(self, ctl: "GazeController") -> Desired: ...
+    def desired(self, estimate: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired: ...
 
 
 def _rotation_exp(w: np.ndarray) -> np.ndarray:
@@ -62,7 +63,7 @@ def _rotation_exp(w: np.ndarray) -> np.ndarray:
 class Hold:
     name: str = field(default="hold", init=False)
 
-    def desired(self, ctl) -> Desired:
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
         return Desired(None)
 
 
@@ -79,16 +80,17 @@ class Fixate:
             raise ValueError(f"gaze target must be a finite world point (x, y, z) m, got {p.tolist()}")
         object.__setattr__(self, "p_world", p)
 
-    def desired(self, ctl) -> Desired:
-        if ctl.T_world_mount is None:
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
+        if est.T_world_mount is None:
             return Desired(None)
         p = self.p_world
-        T_now = ctl.T_world_mount @ ctl.pose_enc.T_mount_cam
+        T_now = est.T_world_mount @ est.T_mount_cam
         d = p - T_now[:3, 3]
         err = math.acos(float(np.clip(T_now[:3, 2] @ d / np.linalg.norm(d), -1.0, 1.0)))
-        res = ctl.ik_point(p, ctl.predicted_mount())
+        res = ik_point(head, p, est.predicted_mount(), est.q)
         if not res.reachable:
-            prompt = ctl.emit(wearer_prompt(ctl.head, ctl.T_world_mount, p, ctl.filter.q)) if ctl.prompt_due() else None
+            # The prompt's search (up to 80 IK solves) only when the controller would repeat it.
+            prompt = wearer_prompt(head, est.T_world_mount, p, est.q) if est.prompt_due else None
             return Desired(None, err, False, prompt)
         return Desired(res.q, err)
 
@@ -113,17 +115,17 @@ class Stabilise:
             raise ValueError("stabilise needs a rotation matrix (3, 3) R_world_cam")
         object.__setattr__(self, "R_world_cam", R.copy())
 
-    def desired(self, ctl) -> Desired:
-        R_now = ctl.attitude.R
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
+        R_now = est.R_world_cam
         if R_now is None:
             return Desired(None)
-        R_wm = R_now @ ctl.pose_enc.R_mount_cam.T
-        R_wm_pred = _rotation_exp(ctl.w_mount * ctl.lead) @ R_wm
+        R_wm = R_now @ est.R_mount_cam.T
+        R_wm_pred = _rotation_exp(est.w_mount * est.lead) @ R_wm
         R_mc_des = R_wm_pred.T @ self.R_world_cam
         err = float(Rotation.from_matrix(self.R_world_cam.T @ R_now).magnitude())
         # Optic axis from the desired z; "up" = the desired image's up (-y), so the vertical
         # rule reproduces the desired roll exactly (z x -y = x).
-        res = gaze_at_direction(ctl.head, R_mc_des[:, 2], -R_mc_des[:, 1], q_current=ctl.filter.q)
+        res = gaze_at_direction(head, R_mc_des[:, 2], -R_mc_des[:, 1], q_current=est.q)
         return Desired(res.q if res.reachable else None, err, res.reachable)
 
 
@@ -136,8 +138,8 @@ class Body:
     q: np.ndarray
     name: str = field(default="body", init=False)
 
-    def desired(self, ctl) -> Desired:
-        return Desired(self.q, float(np.linalg.norm(self.q - ctl.filter.q)))
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
+        return Desired(self.q, float(np.linalg.norm(self.q - est.q)))
 
 
 @dataclass(frozen=True)
@@ -153,18 +155,17 @@ class Track:
             raise ValueError(f"track target must be a finite pixel (u, v), got {uv.tolist()}")
         object.__setattr__(self, "uv", uv)
 
-    def desired(self, ctl) -> Desired:
-        pose = ctl.pose_enc
-        ray = unproject(ctl.camera, self.uv[None])[0]
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
+        ray = unproject(camera, self.uv[None])[0]
         ray = ray / np.linalg.norm(ray)
         err = math.acos(float(np.clip(ray[2], -1.0, 1.0)))
-        d_mount = pose.R_mount_cam @ ray
-        if ctl.T_world_mount is not None or ctl.attitude.R is not None:
+        d_mount = est.R_mount_cam @ ray
+        if est.T_world_mount is not None or est.R_world_cam is not None:
             # The body keeps turning while the command is reached: look where the point will be.
-            R_wm = ctl.T_world_mount[:3, :3] if ctl.T_world_mount is not None else \
-                ctl.attitude.R @ pose.R_mount_cam.T
-            d_mount = (R_wm.T @ _rotation_exp(-ctl.w_mount * ctl.lead) @ R_wm) @ d_mount
-        res = gaze_at_direction(ctl.head, d_mount, ctl.up_mount(), q_current=ctl.filter.q)
+            R_wm = est.T_world_mount[:3, :3] if est.T_world_mount is not None else \
+                est.R_world_cam @ est.R_mount_cam.T
+            d_mount = (R_wm.T @ _rotation_exp(-est.w_mount * est.lead) @ R_wm) @ d_mount
+        res = gaze_at_direction(head, d_mount, est.up_mount(), q_current=est.q)
         return Desired(res.q if res.reachable else None, err, res.reachable)
 
 
@@ -181,8 +182,8 @@ class Slave:
             raise ValueError(f"slave target must be 3 finite joint angles, rad, got {q.tolist()}")
         object.__setattr__(self, "q", q.copy())
 
-    def desired(self, ctl) -> Desired:
-        return Desired(self.q, float(np.linalg.norm(self.q - ctl.filter.q)))
+    def desired(self, est: GazeEstimate, head: HeadGeometry, camera: CameraIntrinsics) -> Desired:
+        return Desired(self.q, float(np.linalg.norm(self.q - est.q)))
 
 
 #: The modes' names, in the order of the table above.

@@ -13,10 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
-def fmt(v) -> str:
-    """Numbers as MJCF writes them: space separated, shortest exact repr."""
-    return " ".join(repr(float(x)) for x in np.ravel(v))
+from kinematics.mjcf import fmt  # the scene builders import it from here too
 
 
 def quat(R: np.ndarray) -> str:

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, default_camera
+from kinematics.mjcf import fmt
 
 from .headmodel import FACE_FEATURES_DEG, HeadModel, head_pose, polyhedral_head
 
@@ -39,10 +40,6 @@ TEXTURE_SIZE = (1024, 512)
 #: Distance of the background plane behind the head's centre, metres.
 BACKGROUND_BEHIND_M = 0.6
 _PIXEL_PITCH_M = 1e-5  # MuJoCo's sensorsize needs a physical pitch; only the ratio matters
-
-
-def _fmt(a) -> str:
-    return " ".join(f"{float(x):.9g}" for x in np.ravel(a))
 
 
 def head_texture(seed: int = 0, size=TEXTURE_SIZE) -> np.ndarray:
@@ -141,24 +138,25 @@ def scene_mjcf(model: HeadModel, camera: CameraIntrinsics, distance_m: float = 1
     ET.SubElement(asset, "texture", name="bg", type="2d", file="background.png")
     ET.SubElement(asset, "material", name="bg", texture="bg", texrepeat="1 1", specular="0")
     # MuJoCo's texture rows run from v = 1 at the top of the image, as OpenGL's.
-    ET.SubElement(asset, "mesh", name="head", vertex=_fmt(model.vertices), face=_fmt(model.faces.astype(float)),
-                  texcoord=_fmt(np.column_stack([model.uv[:, 0], 1.0 - model.uv[:, 1]])))
+    ET.SubElement(asset, "mesh", name="head", vertex=fmt(model.vertices, digits=9),
+                  face=fmt(model.faces.astype(float), digits=9),
+                  texcoord=fmt(np.column_stack([model.uv[:, 0], 1.0 - model.uv[:, 1]]), digits=9))
     world = ET.SubElement(root, "worldbody")
     ET.SubElement(world, "light", name="key", directional="true", pos="0 -2 -1", dir="0.3 0.6 1",
                   diffuse="0.35 0.35 0.35", specular="0 0 0", castshadow="false")
     # The camera: MuJoCo's camera looks along its -z with y up; xyaxes make its optical frame
     # (x right, y down, z forward) the world frame.
     ET.SubElement(world, "camera", name="cam", pos="0 0 0", xyaxes="1 0 0 0 -1 0",
-                  resolution=f"{W} {H}", sensorsize=_fmt([W * _PIXEL_PITCH_M, H * _PIXEL_PITCH_M]),
-                  focalpixel=_fmt([camera.fx, camera.fy]),
-                  principalpixel=_fmt([(W - 1) / 2.0 - camera.cx, (H - 1) / 2.0 - camera.cy]))
+                  resolution=f"{W} {H}", sensorsize=fmt([W * _PIXEL_PITCH_M, H * _PIXEL_PITCH_M], digits=9),
+                  focalpixel=fmt([camera.fx, camera.fy], digits=9),
+                  principalpixel=fmt([(W - 1) / 2.0 - camera.cx, (H - 1) / 2.0 - camera.cy], digits=9))
     # The backdrop: a thin box (not a plane, whose one face would need turning to the camera)
     # large enough to fill the view at its distance.
     z_bg = distance_m + BACKGROUND_BEHIND_M
     half = 1.2 * z_bg * max(W / camera.fx, H / camera.fy)
-    ET.SubElement(world, "geom", name="background", type="box", size=_fmt([half, half, 0.01]),
-                  pos=_fmt([0, 0, z_bg + 0.01]), material="bg", contype="0", conaffinity="0")
-    body = ET.SubElement(world, "body", name="head", mocap="true", pos=_fmt([0, 0, distance_m]))
+    ET.SubElement(world, "geom", name="background", type="box", size=fmt([half, half, 0.01], digits=9),
+                  pos=fmt([0, 0, z_bg + 0.01], digits=9), material="bg", contype="0", conaffinity="0")
+    body = ET.SubElement(world, "body", name="head", mocap="true", pos=fmt([0, 0, distance_m], digits=9))
     ET.SubElement(body, "geom", name="head", type="mesh", mesh="head", material="skin",
                   contype="0", conaffinity="0", mass="0.01")
     return ET.tostring(root, encoding="unicode")

@@ -49,6 +49,7 @@ from kinematics.rays import RayCaster
 from kinematics.transforms import rotation_angle
 
 from .headmodel import HeadModel, polyhedral_head, ypr_from_rotation
+from .stabilise.estimator import FlowSettings, track_points
 
 
 # ---------------------------------------------------------------------------------------------
@@ -139,6 +140,12 @@ class HeadTrackerConfig:
         for name, ok, what in checks:
             if not ok:
                 raise ValueError(f"HeadTrackerConfig.{name} = {getattr(self, name)!r} must be {what}")
+
+    @property
+    def flow(self) -> FlowSettings:
+        """The Lucas-Kanade settings of :func:`~runtime.vision2d.stabilise.track_points` (tracks
+        that leave the image are kept: PnP can use a corner just past the edge)."""
+        return FlowSettings(self.lk_window_px, self.lk_levels, self.fb_max_px, drop_outside=False)
 
 
 @dataclass
@@ -605,19 +612,10 @@ class HeadTracker:
         uv_flow, X_flow = np.zeros((0, 2)), np.zeros((0, 3))
         a_flow, s_flow = np.zeros(0, bool), np.zeros(0)
         if len(self.pts2d):
-            lk = dict(winSize=(c.lk_window_px, c.lk_window_px), maxLevel=c.lk_levels,
-                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-            p0 = self.pts2d.reshape(-1, 1, 2)
-            guess = project(self.camera, self.pts3d @ T_pred[:3, :3].T + T_pred[:3, 3]).astype(np.float32)
-            bad = ~np.all(np.isfinite(guess), axis=1)
-            guess[bad] = self.pts2d[bad]
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.prev_grey, grey, p0, guess.reshape(-1, 1, 2).copy(),
-                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self.prev_grey, p1, p0.copy(),
-                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-            good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < c.fb_max_px)
-            uv_flow, X_flow = p1.reshape(-1, 2)[good].astype(float), self.pts3d[good]
+            guess = project(self.camera, self.pts3d @ T_pred[:3, :3].T + T_pred[:3, 3])
+            # The backward track starts at the corners' previous pixels, not where the forward one ended.
+            uv, good = track_points(self.prev_grey, grey, self.pts2d, c.flow, guess, lambda _: self.pts2d)
+            uv_flow, X_flow = uv[good].astype(float), self.pts3d[good]
             a_flow, s_flow = self.anchor[good], self.n_seen[good]
             if len(uv_flow) >= c.min_inliers:
                 T_flow, _ = self._pnp(X_flow, uv_flow, T_pred)

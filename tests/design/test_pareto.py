@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from design.decide import choose_design
-from design.pareto import hypervolume_mc, non_dominated
+from design.pareto import EXACT_HV_POINTS, hypervolume, non_dominated
 
 
 def brute_force_front(F, feasible):
@@ -33,7 +33,7 @@ def test_non_dominated_matches_brute_force(n, m, seed):
         F[-1] = F[0]
         F[-2] = F[1]
     feasible = rng.uniform(size=n) < 0.8
-    np.testing.assert_array_equal(non_dominated(F, feasible, chunk=7), brute_force_front(F, feasible))
+    np.testing.assert_array_equal(non_dominated(F, feasible), brute_force_front(F, feasible))
 
 
 def test_duplicates_are_both_kept_and_dominated_removed():
@@ -42,10 +42,20 @@ def test_duplicates_are_both_kept_and_dominated_removed():
 
 
 def test_hypervolume_of_a_single_point_is_its_box():
-    hv, se = hypervolume_mc(np.array([[0.5, 0.5]]), ref=1.0, n_samples=200_000)
-    assert hv == pytest.approx(0.25, abs=4 * se + 1e-3)
-    hv3, se3 = hypervolume_mc(np.zeros((1, 3)), ref=1.1)
-    assert hv3 == pytest.approx(1.1**3) and se3 == 0
+    assert hypervolume(np.array([[0.5, 0.5]]), ref=1.0) == (pytest.approx(0.25), True)
+    assert hypervolume(np.zeros((1, 3)), ref=1.1)[0] == pytest.approx(1.1**3)
+    assert hypervolume(np.array([[1.2, 0.0]]), ref=1.1) == (0.0, True)     # beyond the reference: nothing
+
+
+def test_hypervolume_of_two_boxes_and_the_approximation():
+    # Two 2D boxes [0.2, 1] x [0.6, 1] and [0.6, 1] x [0.2, 1]: 0.32 + 0.32 - 0.16.
+    assert hypervolume(np.array([[0.2, 0.6], [0.6, 0.2]]), ref=1.0)[0] == pytest.approx(0.48)
+    rng = np.random.default_rng(3)
+    P = rng.dirichlet(np.ones(4), 400)
+    P = P[non_dominated(P)][: EXACT_HV_POINTS + 10]
+    approx, exact = hypervolume(P, 1.1)
+    assert not exact
+    assert approx == pytest.approx(hypervolume(P[:EXACT_HV_POINTS], 1.1)[0], rel=0.02)
 
 
 def test_decision_prefers_the_weighted_criterion():

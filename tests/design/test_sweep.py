@@ -75,7 +75,7 @@ def test_sigkill_then_resume_loses_and_repeats_nothing(tmp_path):
     cut = tmp_path / "cut"
     cmd = [sys.executable, "-m", "wvr", "design", "optimise", "--sweep", str(sweep_file), "--out", str(cut)]
     for kill_after in (3, 12):     # mid-batch, and in a later batch
-        proc = subprocess.Popen(cmd + (["--resume"] if (cut / "state.pkl").exists() else []),
+        proc = subprocess.Popen(cmd + (["--resume"] if (cut / "state.json").exists() else []),
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         log = cut / "evaluations.csv"
         deadline = time.time() + 120

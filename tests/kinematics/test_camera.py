@@ -389,3 +389,15 @@ def test_missing_file_and_direct_construction_errors(tmp_path):
     cam = CameraIntrinsics(np.int64(640), np.int64(480), np.float64(500), 500, 320, 240)
     assert type(cam.width) is int and type(cam.fy) is float
     assert cam.validate("x.toml") is cam
+
+
+def test_depth_scale_is_a_sequence_key_of_camera_toml(tmp_path):
+    from kinematics.camera import CameraFileError, load_camera
+
+    doc = "[camera]\nwidth = 640\nheight = 480\nfx = 500.0\nfy = 500.0\ncx = 319.5\ncy = 239.5\n"
+    (tmp_path / "a.toml").write_text(doc + "depth_scale = 1000.0\n")
+    assert load_camera(tmp_path / "a.toml").fx == 500.0
+    for bad in ("0", "-5.0", "nan", '"x"'):
+        (tmp_path / "b.toml").write_text(doc + f"depth_scale = {bad}\n")
+        with pytest.raises(CameraFileError, match="depth_scale"):
+            load_camera(tmp_path / "b.toml")

@@ -17,11 +17,12 @@ from runtime.drivers.dynamixel import (ADDR_BUS_WATCHDOG, ADDR_DRIVE_MODE, ADDR_
                                        ADDR_PROFILE_ACCELERATION, ADDR_PROFILE_VELOCITY, ADDR_TORQUE_ENABLE,
                                        TICKS_PER_TURN, VELOCITY_UNIT_RAD_S, DynamixelBoard, DynamixelBus,
                                        velocity_units, watchdog_units)
-from runtime.drivers.rig import HardwareRig, RigFileError, load_rig
-from runtime.drivers.safety import SafetyChain, SafetySettings
+from runtime.drivers.rig import RigFileError, load_rig
+from runtime.safety import SafetyChain, SafetySettings
 from runtime.robot import JOINTS_MEASURED, JointCommand
 from runtime.twin.hil import PtyDevice
 from runtime.twin.virtual_dynamixel import VirtualDynamixelBus, crc16, packet, stuff, unstuff
+from wvr.assemble import make_rig
 
 DT = 1 / 30
 TICKS_PER_RAD = TICKS_PER_TURN / (2 * math.pi)
@@ -237,7 +238,7 @@ def test_the_bus_watchdog_stops_a_servo_when_the_host_goes_silent(tmp_path, bus)
 def test_the_rig_runs_on_dynamixel_servos_and_reports_their_encoders(tmp_path, bus):
     vb, dev = bus
     cfg_path = write_rig(tmp_path, dev.path, speed=200.0)
-    rig = HardwareRig(load_rig(cfg_path))
+    rig = make_rig(load_rig(cfg_path))                  # behind the safety chain, as wvr run drives it
     try:
         obs = rig.reset()
         assert obs.q_source == JOINTS_MEASURED
@@ -245,8 +246,8 @@ def test_the_rig_runs_on_dynamixel_servos_and_reports_their_encoders(tmp_path, b
         for k in range(10):
             vb.advance(DT)
             obs = rig.step(JointCommand([0.2, -0.1, 0.05], basis_t=obs.t))
-        q_enc = np.array([cfg.to_rad(vb.servos[i].get(132, 4)) for cfg, i in zip(rig.cfg.calibration, (1, 2, 3))])
-        np.testing.assert_allclose(rig.board.positions(), q_enc, atol=1e-12)
+        q_enc = np.array([cfg.to_rad(vb.servos[i].get(132, 4)) for cfg, i in zip(rig.robot.cfg.calibration, (1, 2, 3))])
+        np.testing.assert_allclose(rig.robot.board.positions(), q_enc, atol=1e-12)
         assert np.all(np.sign(q_enc) == np.sign([0.2, -0.1, 0.05])) and np.all(np.abs(q_enc) > 0.01)
     finally:
         rig.close()

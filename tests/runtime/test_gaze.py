@@ -206,6 +206,84 @@ def test_a_held_target_that_becomes_unreachable_is_prompted_about_once_a_period_
     assert len(standing) == len(searches) and all(pr.kind == "turn" for pr in standing)
 
 
+def _estimate(T_world_mount, q, prompt_due=False, w_mount=(0.0, 0.0, 0.0)):
+    from runtime.gaze import GazeEstimate
+
+    return GazeEstimate(t=0.0, q_enc=q, q=q, T_mount_cam=forward_kinematics(HEAD, q).T_mount_cam, T_world_cam=None,
+                        T_world_mount=T_world_mount, v_mount=np.zeros(3), w_mount=np.asarray(w_mount, float),
+                        R_world_cam=None, lead=DT, prompt_due=prompt_due)
+
+
+def test_a_mode_reads_a_frozen_estimate_built_without_a_controller():
+    """Modes take (estimate, head, camera): a hand-made estimate gives the IK's angles from the
+    mount pose it states, and the estimate cannot be changed by a mode."""
+    import dataclasses
+
+    from runtime.gaze import Fixate, Slave
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.4]).as_matrix()
+    T[:3, 3] = [0.2, -0.1, 1.4]
+    q0 = fixating_posture(np.array([0.6, -0.4, -0.3]))
+    p_world = T[:3, 3] + T[:3, :3] @ np.array([0.7, 0.2, -0.4])
+    est = _estimate(T, q0)
+    goal = Fixate(p_world).desired(est, HEAD, CAM)
+    np.testing.assert_allclose(goal.q, gaze_at_point(HEAD, np.array([0.7, 0.2, -0.4]), T[:3, :3].T @ [0, 0, 1],
+                                                     q_current=q0).q, atol=1e-12)
+    T_wc = T @ forward_kinematics(HEAD, q0).T_mount_cam
+    d = p_world - T_wc[:3, 3]
+    assert goal.error_rad == pytest.approx(math.acos(T_wc[:3, 2] @ d / np.linalg.norm(d)), abs=1e-12)
+    # The wearer turning: the goal is taken from where the mount will be a lead ahead.
+    turned = Fixate(p_world).desired(_estimate(T, q0, w_mount=(0.0, 0.0, 1.0)), HEAD, CAM)
+    T_ahead = T.copy()
+    T_ahead[:3, :3] = Rotation.from_rotvec([0.0, 0.0, DT]).as_matrix() @ T[:3, :3]
+    p_ahead = T_ahead[:3, :3].T @ (p_world - T[:3, 3])
+    np.testing.assert_allclose(turned.q, gaze_at_point(HEAD, p_ahead, T_ahead[:3, :3].T @ [0, 0, 1], q_current=q0).q,
+                               atol=1e-12)
+    assert Slave(q0 + 0.1).desired(est, HEAD, CAM).error_rad == pytest.approx(math.sqrt(3) * 0.1)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        est.q = np.zeros(3)
+    with pytest.raises(ValueError):
+        est.T_world_mount[0, 3] = 5.0
+
+
+def test_the_controller_hands_its_modes_the_periods_estimate():
+    p = np.array([0.6, -0.4, -0.3])
+    q0 = fixating_posture(p)
+    ctl = GazeController(HEAD, CAM, q0, DT)
+    seen = []
+
+    class Spy:
+        name = "spy"
+
+        def desired(self, est, head, camera):
+            seen.append((est, head, camera))
+            from runtime.gaze import Desired
+            return Desired(None)
+
+    ctl.set_mode(Spy())
+    T_world_mount = np.eye(4)
+    T_world_mount[:3, 3] = [0.1, 0.2, 1.3]
+    T_wc = T_world_mount @ forward_kinematics(HEAD, q0).T_mount_cam
+    ctl.step(0.5, np.zeros((0, 7)), q0, T_world_cam=T_wc)
+    est, head, camera = seen[-1]
+    assert head is HEAD and camera is CAM and est.t == 0.5 and est.lead == ctl.lead
+    np.testing.assert_allclose(est.T_world_mount, T_world_mount, atol=1e-12)
+    np.testing.assert_array_equal(est.T_world_cam, T_wc)
+    np.testing.assert_array_equal(est.q_enc, q0)
+    assert est.R_world_cam is None and est.prompt_due
+
+
+def test_a_mode_builds_a_prompt_only_when_the_controller_says_one_is_due():
+    from runtime.gaze import Fixate
+
+    q0 = fixating_posture(np.array([0.6, -0.4, -0.3]))
+    behind = np.array([-1.0, 0.4, -0.2])
+    assert Fixate(behind).desired(_estimate(np.eye(4), q0, prompt_due=False), HEAD, CAM).prompt is None
+    goal = Fixate(behind).desired(_estimate(np.eye(4), q0, prompt_due=True), HEAD, CAM)
+    assert not goal.reachable and goal.q is None and goal.prompt.kind == "turn" and "left" in goal.prompt.text
+
+
 def test_the_prompts_coarse_to_fine_search_finds_the_smallest_turn_a_step_by_step_search_finds():
     from runtime.gaze.prompts import _reachable
 

@@ -237,7 +237,8 @@ def test_a_label_placed_on_the_page_shows_in_the_camera_view(station, browser):
 
 def test_the_wearers_page_shows_the_prompt(station, browser):
     page = browser.new_page()
-    page.goto(station.public_url + f"wearer?token={station.token}")
+    page.goto(station.wearer_url)
+    assert station.token not in page.content()                 # the wearer's page holds its own token only
     T = station.live.latest().view.T_world_cam
     behind = (T[:3, 3] - 2.0 * T[:3, 2] + np.array([0.0, 0.0, 0.3])).tolist()
     res = page.evaluate("""async (body) => {
@@ -247,4 +248,11 @@ def test_the_wearers_page_shows_the_prompt(station, browser):
     assert res[0] == 422 and res[1]["prompt"]
     page.wait_for_function("window.wearer.prompts.length > 0", timeout=30_000)
     assert page.locator("#prompt").inner_text().startswith("Please ")
+    # With the token it holds, the wearer's page can neither stop nor steer the head.
+    n = len(station.live.run.events)
+    codes = page.evaluate("""async (token) => Promise.all(["stop", "fixate", "mode"].map(async (k) =>
+        (await fetch('/api/' + k, {method: 'POST', headers: {'Authorization': 'Bearer ' + token,
+            'Content-Type': 'application/json'}, body: '{"feature": 0, "mode": "hold"}'})).status))""",
+                          station.wearer_token)
+    assert codes == [403, 403, 403] and len(station.live.run.events) == n and not station.live.latest().estop
     page.close()

@@ -69,14 +69,14 @@ def test_the_station_drives_the_rig_and_its_stop_trips_the_rigs_latch(tmp_path):
         code, _ = call(st, "POST", "/api/stop", {"reason": "station test"})
         assert code == 200
         assert rig.estop.tripped and cfg.estop_file.exists()
-        n = len(rig.sent_qus)
+        n = len(rig.robot.sent_qus)
         code, body = call(st, "POST", "/api/fixate", {"feature": corner["id"]})
         assert code == 409
         t0 = time.time()
-        while len(rig.sent_qus) < n + 5:
+        while len(rig.robot.sent_qus) < n + 5:
             assert time.time() - t0 < 60
             time.sleep(0.05)
-        held = np.array(rig.sent_qus[n:n + 5])
+        held = np.array(rig.robot.sent_qus[n:n + 5])
         assert (held == held[0]).all()                      # the board held its pulses
         code, _ = call(st, "POST", "/api/reset", {})
         assert code == 200 and not rig.estop.tripped and not cfg.estop_file.exists()

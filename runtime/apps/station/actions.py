@@ -18,6 +18,23 @@ from .geometry import OBJECT_KINDS
 #: Modes an operator may switch to (fixation is a click or a fixate action: it needs a point).
 OPERATOR_MODES = ("hold", "stabilise", "body", "track")
 MAX_TEXT = 200
+#: How far from the world's origin a point may be named, m (a wearable's scene is metres across;
+#: a point 1e300 m away is a mistake, not a direction).
+MAX_POINT_M = 1000.0
+#: An object's size: each box edge and the arrow's length in [MIN_SIZE_M, MAX_SIZE_M], m.
+MIN_SIZE_M, MAX_SIZE_M = 1e-3, 10.0
+#: Feature ids are map indices: at most this.
+MAX_FEATURE_ID = 2**31 - 1
+
+
+def short(value, limit: int = 60) -> str:
+    """``value`` for a reason: numbers as %.3g, anything else its repr cut to ``limit`` characters."""
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+        return "[" + ", ".join(f"{v:.3g}" for v in value.ravel()) + "]"
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 class BadAction(ValueError):
@@ -98,19 +115,28 @@ def finite_vector(value, n: int, what: str) -> np.ndarray:
     """``value`` as a finite (n,) float vector, or BadAction naming the problem."""
     try:
         v = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise BadAction(f"{what} must be a list of {n} numbers, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise BadAction(f"{what} must be a list of {n} numbers, got {short(value)}") from None
     if v.shape != (n,):
-        raise BadAction(f"{what} must be a list of {n} numbers, got {value!r}")
+        raise BadAction(f"{what} must be a list of {n} numbers, got {short(value)}")
     if not np.isfinite(v).all():
-        raise BadAction(f"{what} {v.tolist()} has NaN or infinity; give finite numbers")
+        raise BadAction(f"{what} {short(v)} has NaN or infinity; give finite numbers")
     return v
+
+
+def world_point(value, what: str = "xyz") -> np.ndarray:
+    """``value`` as a (3,) world point, m, within :data:`MAX_POINT_M` of the origin."""
+    p = finite_vector(value, 3, what)
+    if np.abs(p).max() > MAX_POINT_M:
+        raise BadAction(f"{what} {short(p)} m is beyond {MAX_POINT_M:g} m of the world's origin; give a point "
+                        "in the scene (world frame, metres)")
+    return p
 
 
 def feature_id(value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-            or int(value) != value:
-        raise BadAction(f"feature must be an integer id, got {value!r}")
+            or int(value) != value or not 0 <= value <= MAX_FEATURE_ID:
+        raise BadAction(f"feature must be an integer id 0..{MAX_FEATURE_ID}, got {short(value)}")
     return int(value)
 
 
@@ -122,7 +148,7 @@ def _target(body: dict, what: str) -> dict:
     k = given[0]
     if k == "feature":
         return {"feature": feature_id(body[k])}
-    return {k: finite_vector(body[k], 3 if k == "xyz" else 2, k)}
+    return {k: world_point(body[k]) if k == "xyz" else finite_vector(body[k], 2, k)}
 
 
 def from_json(kind: str, body) -> Action:
@@ -142,19 +168,25 @@ def from_json(kind: str, body) -> Action:
     if kind == "object":
         ob = body.get("kind")
         if ob not in OBJECT_KINDS:
-            raise BadAction(f"object 'kind' must be one of {', '.join(OBJECT_KINDS)}, got {ob!r}")
+            raise BadAction(f"object 'kind' must be one of {', '.join(OBJECT_KINDS)}, got {short(ob)}")
         size = finite_vector(body.get("size", [0.05, 0.05, 0.05] if ob == "box" else [0.0, 0.0, 0.1]), 3, "size")
-        if not np.linalg.norm(size) > 0 or (ob == "box" and (size <= 0).any()):
-            raise BadAction(f"object size {size.tolist()} must be positive (box: each edge; arrow: its vector)")
+        # The arrow's length from its largest component first: the plain norm of 1e-300 underflows.
+        scale = float(np.abs(size).max())
+        length = scale * float(np.linalg.norm(size / scale)) if scale > 0 else 0.0
+        extents = size if ob == "box" else np.array([length])
+        if not ((extents >= MIN_SIZE_M).all() and (extents <= MAX_SIZE_M).all()):
+            raise BadAction(f"object size {short(size)} m: a box's edges and an arrow's length must be positive, "
+                            f"{MIN_SIZE_M * 1000:g} mm to {MAX_SIZE_M:g} m")
         return AddObject(ob, size, **_target(body, "object"))
     if kind == "mode":
         mode = body.get("mode")
         if mode not in OPERATOR_MODES:
-            raise BadAction(f"mode must be one of {', '.join(OPERATOR_MODES)} (fixation: POST /api/fixate), got {mode!r}")
+            raise BadAction(f"mode must be one of {', '.join(OPERATOR_MODES)} (fixation: POST /api/fixate), "
+                            f"got {short(mode)}")
         return SetMode(mode)
     if kind == "stop":
         reason = body.get("reason", "operator's emergency stop")
         return Stop(str(reason)[:MAX_TEXT])
     if kind == "reset":
         return Reset()
-    raise BadAction(f"unknown action {kind!r}")
+    raise BadAction(f"unknown action {short(kind)}")

@@ -323,8 +323,9 @@ class LiveStation:
 
     def _record(self, p: Pending, res: A.ActionResult, t: float) -> EventRecord:
         a = p.action
-        detail = {k: (np.round(v, 4).tolist() if isinstance(v, np.ndarray) else v) for k, v in vars(a).items()
-                  if k != "name" and v is not None}
+        # %.6g, not rounding: np.round(1e308, 4) overflows to inf, which events.csv must never hold.
+        detail = {k: ([float(f"{e:.6g}") for e in np.ravel(v)] if isinstance(v, np.ndarray) else v)
+                  for k, v in vars(a).items() if k != "name" and v is not None}
         ev = EventRecord(t=t, wall=p.received_wall, source=p.source, action=a.name, detail=str(detail),
                          accepted=res.accepted, reason=res.reason, applied_wall=time.time())
         self.run.events.append(ev)
@@ -342,6 +343,10 @@ class LiveStation:
                                   f"{', '.join(map(str, view.ids[:20].tolist())) or 'no features'}")
             return p, {"feature": int(act.feature), "xyz": p.tolist()}
         if act.uv is not None:
+            w, h = self.camera.width, self.camera.height
+            if not (-0.5 <= act.uv[0] <= w - 0.5 and -0.5 <= act.uv[1] <= h - 0.5):
+                raise A.BadAction(f"uv ({act.uv[0]:.3g}, {act.uv[1]:.3g}) px is outside the {w}x{h} image; "
+                                  "give a pixel of the camera view")
             if not view.localised:
                 raise A.BadAction("a pixel cannot be resolved while SLAM is lost")
             fid = feature_at_pixel(view, self.camera, act.uv)

@@ -1,6 +1,8 @@
 """The station's own pages: the operator's (viser's 3D view beside the live camera view and its
 tools), the wearer's (the standing prompt, spoken), and the refusal without a token. Served only
-to holders of the token, which the pages' scripts then send as the API's bearer token."""
+to holders of a token, which the pages' scripts then send as the API's bearer token: the
+operator's page carries the operator's, the wearer's page only the wearer's (which reads the
+prompt and nothing else)."""
 
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ _OPERATOR = r"""<!doctype html>
   <button data-mode="body">body (Path B)</button> <button data-mode="track">track</button>
  </div>
  <div><button id="stop">EMERGENCY STOP</button> <button id="reset">reset</button>
-  <a href="/wearer" target="_blank" style="color:#8cf">wearer's page</a></div>
+  <a id="wearer" target="_blank" style="color:#8cf">wearer's page</a></div>
  <div id="log"></div>
 </div>
 <script id="camera-worker" type="text/x-worker">
@@ -88,6 +90,8 @@ async function pull(origin, token, canvas) {
 <script>
 const TOKEN = __TOKEN__;
 const H = {"Authorization": "Bearer " + TOKEN};
+// The address to hand the wearer: their own token, which reads the prompt and nothing more.
+document.getElementById("wearer").href = "/wearer?token=" + encodeURIComponent(__WEARER_TOKEN__);
 // "#camera" opens the camera view alone (a slow machine, a measurement of the camera view).
 if (location.hash === "#camera") document.getElementById("view3d").remove();
 else document.getElementById("view3d").src = "/viser/";
@@ -166,7 +170,7 @@ window.wearer = {prompts: []};
 async function poll() {
   for (;;) {
     try {
-      const s = await (await fetch("/api/state", {headers: {"Authorization": "Bearer " + TOKEN}, cache: "no-store"})).json();
+      const s = await (await fetch("/api/prompt", {headers: {"Authorization": "Bearer " + TOKEN}, cache: "no-store"})).json();
       document.getElementById("prompt").textContent = s.prompt ? "Please " + s.prompt : "(nothing to do)";
       document.getElementById("mode").textContent = s.estop ? "camera stopped" : s.mode;
       if (s.prompt && s.prompt !== said) {
@@ -182,9 +186,11 @@ poll();
 """
 
 
-def operator_page(token: str) -> str:
-    return _OPERATOR.replace("__TOKEN__", json.dumps(token))
+def operator_page(token: str, wearer_token: str) -> str:
+    """The operator's page with the operator's token, and the wearer's page's address."""
+    return _OPERATOR.replace("__WEARER_TOKEN__", json.dumps(wearer_token)).replace("__TOKEN__", json.dumps(token))
 
 
-def wearer_page(token: str) -> str:
-    return _WEARER.replace("__TOKEN__", json.dumps(token))
+def wearer_page(wearer_token: str) -> str:
+    """The wearer's page: it holds the wearer's token only (GET /api/prompt)."""
+    return _WEARER.replace("__TOKEN__", json.dumps(wearer_token))

@@ -55,6 +55,11 @@ def begin(out: Path, notes: dict | None = None) -> None:
     _status(out, False, "running", notes)
 
 
+def failed(out: Path, reason: str, notes: dict | None = None) -> None:
+    """A session that never ran (its loop failed before its first period): no recording."""
+    _status(out, False, f"failed: {reason}", notes)
+
+
 def _toml_str(s: str) -> str:
     return json.dumps(s)           # a JSON string is a valid TOML basic string
 

@@ -3,6 +3,7 @@ JSON API and the pages on the public port, and the recording when it stops.
 
     st = Station(robot, start_target, out="session", truth=twin).open()
     print(st.url)            # http://127.0.0.1:8080/?token=...
+    print(st.wearer_url)     # http://127.0.0.1:8080/wearer?token=... (reads the prompt only)
     st.wait()                # until --seconds, the robot's session ends, or st.stop()
     st.close()               # writes the recording
 """
@@ -20,17 +21,46 @@ from pathlib import Path
 from ...gaze import ControllerSettings
 from . import record
 from .live import LiveStation
-from .server import StationServer
+from .server import StationServer, wearer_token_for
 from .view3d import View3D
 
 MIN_TOKEN = 8
 
 
-def is_loopback(host: str) -> bool:
+def _addresses(host: str) -> list:
     try:
-        return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
+        return [ipaddress.ip_address(ai[4][0].split("%")[0]) for ai in socket.getaddrinfo(host, None)]
     except (OSError, ValueError):
+        return []
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) reaches this machine only."""
+    found = _addresses(host)
+    return bool(found) and all(a.is_loopback for a in found)
+
+
+def is_everywhere(host: str) -> bool:
+    """Whether ``host`` is the unspecified address (0.0.0.0, ::): every interface."""
+    try:
+        return ipaddress.ip_address(host).is_unspecified
+    except ValueError:
         return False
+
+
+def address_lines(url: str, wearer_url: str, host: str, remote: tuple[str, str] | None = None) -> list[str]:
+    """What the station prints once it listens: the operator's address (with the token), the
+    wearer's, where it listens when that is beyond loopback, and one warning that the token
+    then travels in plain HTTP. ``remote``: the operator's and the wearer's addresses by this
+    machine's name when ``host`` is every interface (None otherwise)."""
+    lines = [f"station: open {url}", f"station: the wearer's page (it reads the prompt, nothing more): {wearer_url}"]
+    if remote is not None:
+        lines.append(f"station: listening on all interfaces ({host}); from another machine: {remote[0]} "
+                     f"(the wearer's page: {remote[1]})")
+    if not is_loopback(host):
+        lines.append("station: warning: beyond loopback the token travels in plain HTTP, readable on the network's "
+                     "path; serve only on a network you trust, or keep --host 127.0.0.1 and reach it through ssh -L")
+    return lines
 
 
 def resolve_token(token: str | None) -> tuple[str, bool]:
@@ -55,6 +85,7 @@ class Station:
                  settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 2.0,
                  notes: dict | None = None, on_finish=None):
         self.token, self.token_generated = resolve_token(token)
+        self.wearer_token = wearer_token_for(self.token)
         self.host = host
         self.loopback = is_loopback(host)
         self.out = record.check_out(out) if out is not None else None
@@ -66,38 +97,71 @@ class Station:
         self.view: View3D | None = None
         self.http: StationServer | None = None
         self.written: list[str] = []
+        self._begun = False
 
     def open(self) -> "Station":
         """Start serving (the public port first, so that a busy one fails before anything runs),
-        then the loop."""
+        then the loop. If any part fails to start, what did start is closed (and the recording,
+        if begun, marked failed) before the error goes on."""
         try:
-            self.http = StationServer(self.host, self._port, self.token, self.live, None)
+            self.http = StationServer(self.host, self._port, self.token, self.live, None,
+                                      wearer_token=self.wearer_token)
         except OSError as e:
-            raise ValueError(f"cannot listen on {self.host}:{self._port} ({e.strerror}); choose another --port "
-                             "or --host") from None
-        self.view = View3D(self.live, port=self.http.port + 1 if self._port else 0, rate_hz=self._view_rate)
-        self.http.viser_port = self.view.port
-        self.http.gate_secret = self.view.gate_secret
-        if self.out is not None:
-            record.begin(self.out, {"address": self.public_url, **self.notes})
-        self.http.start()
-        self.live.start()
-        self.view.start()
+            raise ValueError(f"cannot listen on {self.host}:{self._port} ({e.strerror or e}); choose another "
+                             "--port or --host") from None
+        try:
+            self.view = View3D(self.live, port=self.http.port + 1 if self._port else 0, rate_hz=self._view_rate)
+            self.http.viser_port = self.view.port
+            self.http.gate_secret = self.view.gate_secret
+            if self.out is not None:
+                record.begin(self.out, {"address": self.public_url, **self.notes})
+                self._begun = True
+            self.http.start()
+            self.live.start()
+            self.view.start()
+        except BaseException as e:
+            self.live.stop(f"failed to start: {e}")
+            self.close()
+            raise
         return self
 
     @property
     def port(self) -> int:
         return self.http.port
 
+    def _base(self, host: str) -> str:
+        return f"http://{host if ':' not in host else f'[{host}]'}:{self.port}/"
+
     @property
     def public_url(self) -> str:
-        host = self.host if ":" not in self.host else f"[{self.host}]"
-        return f"http://{host}:{self.port}/"
+        """The station's address on this machine: ``--host``, or loopback when that is every
+        interface (0.0.0.0 is no address a browser can open)."""
+        if is_everywhere(self.host):
+            return self._base("::1" if ":" in self.host else "127.0.0.1")
+        return self._base(self.host)
+
+    @property
+    def remote_urls(self) -> tuple[str, str] | None:
+        """The operator's and the wearer's addresses (with their tokens) by this machine's name,
+        when serving on every interface; None otherwise."""
+        if not is_everywhere(self.host):
+            return None
+        base = self._base(socket.gethostname())
+        return f"{base}?token={self.token}", f"{base}wearer?token={self.wearer_token}"
 
     @property
     def url(self) -> str:
         """The page's address with the token (what the operator opens)."""
         return f"{self.public_url}?token={self.token}"
+
+    @property
+    def wearer_url(self) -> str:
+        """The wearer's page with the wearer's token (it reads the prompt only)."""
+        return f"{self.public_url}wearer?token={self.wearer_token}"
+
+    def address_lines(self) -> list[str]:
+        """What to print once it listens (see :func:`address_lines`)."""
+        return address_lines(self.url, self.wearer_url, self.host, self.remote_urls)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Until the loop ends (or ``timeout`` s); True if it ended."""
@@ -116,7 +180,11 @@ class Station:
         self.live.stop(reason)
 
     def close(self) -> list[str]:
-        """Stop the loop, the servers, and write the recording (if an out folder was given)."""
+        """Stop the loop, the servers, and write the recording (if an out folder was given).
+        A second call does nothing."""
+        if getattr(self, "_closed", False):
+            return self.written
+        self._closed = True
         self.live.stop("stopped")
         self.live.join(30.0)
         if self.view is not None:
@@ -126,6 +194,9 @@ class Station:
             self.http.close()
         if self.out is not None and self.live.started.is_set():
             self.written = record.finish(self.out, self.live.run, self.notes)
+        elif self._begun:                  # it never ran: say so, never "running"
+            record.failed(self.out, self.live.run.ended or "failed to start", self.notes)
+            self._begun = False
         return self.written
 
     def __enter__(self) -> "Station":

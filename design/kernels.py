@@ -1,0 +1,648 @@
+"""Compiled (numba) kernels behind the criteria: the voxel sweep, the collision grid, the dynamics.
+
+Each kernel computes what the numpy code it replaced computed, in the same order of operations
+where the order decides a result (which sample of a half-voxel is kept, which boundary voxels a
+sweep reaches), so the criteria keep their meaning and, but for the last bit of a few roundings,
+their values (tests/design/test_fast.py checks them against the old code, kept in
+tests/design/reference_criteria.py). What is gone is the numpy cost: no (3, N) temporaries per
+sweep angle, no sort, no Python loop per part or pair. All kernels are ``cache=True``: the first
+run in a fresh environment compiles them (a few seconds), later processes load them from disk.
+
+Units: metres and radians; arrays are C-contiguous float64 unless said otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.extending import intrinsic
+
+#: Same values as design.volume (duplicated here so the kernels import nothing else).
+RADIUS_BANDS = 8
+
+
+# --------------------------------------------------------------------------------------------
+# Small helpers, written as numpy writes them (see kinematics.chain.axis_angle_matrix)
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def _axis_angle(axis, angle, out):
+    """out (3, 3) = I + sin(t) K + (1 - cos(t)) K^2, Rodrigues, as kinematics.chain computes it."""
+    x, y, z = axis[0], axis[1], axis[2]
+    s = math.sin(angle)
+    c1 = 1.0 - math.cos(angle)
+    K = ((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0))
+    K2 = ((x * x - 1.0, x * y, x * z), (x * y, y * y - 1.0, y * z), (x * z, y * z, z * z - 1.0))
+    for r in range(3):
+        for c in range(3):
+            e = 1.0 if r == c else 0.0
+            out[r, c] = (e + s * K[r][c]) + c1 * K2[r][c]
+
+
+@njit(cache=True)
+def _linspace(lo, hi, n, out):
+    """out[:n] = np.linspace(lo, hi, n) (same rounding: i * step + lo, last = hi)."""
+    if n == 1:
+        out[0] = lo
+        return
+    step = (hi - lo) / (n - 1)
+    for i in range(n):
+        out[i] = i * step + lo
+    out[n - 1] = hi
+
+
+# --------------------------------------------------------------------------------------------
+# Working volume: the hierarchical voxel sweep of design.volume
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def _box_count(sizes, spacing):
+    total = 0
+    for p in range(sizes.shape[0]):
+        n = 1
+        for d in range(3):
+            n *= int(math.ceil(sizes[p, d] / spacing)) + 1
+        total += n
+    return total
+
+
+@njit(cache=True)
+def _box_points(centers, sizes, spacing, out, start):
+    """Fill out[:, start:] (3, M) with the points of every box (volume._box_points, x-major);
+    returns the end."""
+    k = start
+    nmax = 2
+    for p in range(centers.shape[0]):
+        for d in range(3):
+            nmax = max(nmax, int(math.ceil(sizes[p, d] / spacing)) + 1)
+    ax = np.empty((3, nmax))
+    ns = np.empty(3, np.int64)
+    for p in range(centers.shape[0]):
+        for d in range(3):
+            n = int(math.ceil(sizes[p, d] / spacing)) + 1
+            ns[d] = n
+            c, s = centers[p, d], sizes[p, d]
+            _linspace(c - s / 2.0, c + s / 2.0, n, ax[d])
+        for i in range(ns[0]):
+            for j in range(ns[1]):
+                for m in range(ns[2]):
+                    out[0, k] = ax[0, i]
+                    out[1, k] = ax[1, j]
+                    out[2, k] = ax[2, m]
+                    k += 1
+    return k
+
+
+@njit(cache=True, inline="always")
+def _set_bit(bits, c):
+    bits[c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+
+
+@njit(cache=True, inline="always")
+def _has_bit(bits, c):
+    return (bits[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) != np.uint64(0)
+
+
+@intrinsic
+def _ctpop(typingctx, x):
+    """Number of set bits of an integer (LLVM's ctpop: one instruction)."""
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+    return x(x), codegen
+
+
+@njit(cache=True)
+def _popcount(bits):
+    n = 0
+    for w in bits:
+        n += int(_ctpop(w))
+    return n
+
+
+@njit(cache=True)
+def _ranks(bits):
+    """(n_words + 1,) number of set bits before each word: a set cell's rank (its position in C
+    order among the set cells) is ranks[c >> 6] plus the set bits below it in its word."""
+    out = np.zeros(bits.size + 1, np.int64)
+    for w in range(bits.size):
+        out[w + 1] = out[w] + int(_ctpop(bits[w]))
+    return out
+
+
+@njit(cache=True, inline="always")
+def _rank(bits, ranks, c):
+    below = bits[c >> 6] & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1))
+    return ranks[c >> 6] + int(_ctpop(below))
+
+
+@njit(cache=True)
+def _cells(P, i0, i1, scale, off, lo, d1, d2, out):
+    """out[:i1 - i0] = C-order lattice cell of points P[:, i0:i1] (3, N), cells of edge 1 / scale
+    offset by ``off`` cells, relative to the box corner ``lo``. A loop the compiler vectorises."""
+    f0, f1, f2 = off[0], off[1], off[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    X, Y, Z = P[0], P[1], P[2]
+    for i in range(i0, i1):
+        a = np.int32(math.floor(X[i] * scale - f0)) - l0
+        b = np.int32(math.floor(Y[i] * scale - f1)) - l1
+        c = np.int32(math.floor(Z[i] * scale - f2)) - l2
+        out[i - i0] = (a * d1 + b) * d2 + c
+
+
+@njit(cache=True)
+def _turn_into(R, origin, P, i0, i1, out, k):
+    """out[:, k:k + i1 - i0] = R @ P[:, i0:i1] + origin (volume._turn for one rotation)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
+                                                   R[2, 0], R[2, 1], R[2, 2])
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    X, Y, Z = P[0], P[1], P[2]
+    for i in range(i0, i1):
+        x, y, z = X[i], Y[i], Z[i]
+        out[0, k + i - i0] = ((r00 * x + r01 * y) + r02 * z) + o0
+        out[1, k + i - i0] = ((r10 * x + r11 * y) + r12 * z) + o1
+        out[2, k + i - i0] = ((r20 * x + r21 * y) + r22 * z) + o2
+
+
+@njit(cache=True)
+def _turned_cells(R, origin, P, i0, i1, scale, off, lo, d1, d2, out):
+    """out[:i1 - i0] = lattice cells of R @ P[:, i0:i1] + origin (without storing the points)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
+                                                   R[2, 0], R[2, 1], R[2, 2])
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    f0, f1, f2 = off[0], off[1], off[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    X, Y, Z = P[0], P[1], P[2]
+    for i in range(i0, i1):
+        x, y, z = X[i], Y[i], Z[i]
+        a = np.int32(math.floor((((r00 * x + r01 * y) + r02 * z) + o0) * scale - f0)) - l0
+        b = np.int32(math.floor((((r10 * x + r11 * y) + r12 * z) + o1) * scale - f1)) - l1
+        c = np.int32(math.floor((((r20 * x + r21 * y) + r22 * z) + o2) * scale - f2)) - l2
+        out[i - i0] = (a * d1 + b) * d2 + c
+
+
+@njit(cache=True)
+def _thin(points, scale2, off2):
+    """One exact point per occupied half-voxel (3, S) and one per surface voxel (3, B), of the
+    points (3, M).
+
+    The same sets, in the same order, as volume._thin: the last point of each cell, cells in
+    C order of their bounding box. Occupancy is a bitmap (scanned a word at a time), the last
+    point of a cell an int32 array read only where the bitmap says so (never filled).
+    """
+    M = points.shape[1]
+    if M == 0:
+        return points[:, :0].copy(), points[:, :0].copy()
+    lo = np.empty(3, np.int32)
+    hi = np.empty(3, np.int32)
+    for d in range(3):
+        x0, x1 = np.inf, -np.inf
+        for i in range(M):
+            x0 = min(x0, points[d, i])
+            x1 = max(x1, points[d, i])
+        # floor is monotone: the extreme cells are those of the extreme coordinates.
+        lo[d] = np.int32(math.floor(x0 * scale2 - off2[d]))
+        hi[d] = np.int32(math.floor(x1 * scale2 - off2[d]))
+    # Rows of the bitmap padded to whole words, so that the scan below needs no division.
+    d0, d1 = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
+    row_words = (hi[2] - lo[2]) // 64 + 1
+    if d0 * d1 * row_words * 64 >= 2**31:
+        raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
+    bits = np.zeros(d0 * d1 * row_words, np.uint64)
+    cell = np.empty(M, np.int32)
+    _cells(points, 0, M, scale2, off2, lo, d1, 64 * row_words, cell)
+    for i in range(M):
+        _set_bit(bits, cell[i])
+    # The last point of each set cell, indexed by the cell's rank (no array over the whole box).
+    ranks = _ranks(bits)
+    last = np.empty(ranks[-1], np.int32)
+    for i in range(M):
+        last[_rank(bits, ranks, cell[i])] = i
+    samples = np.empty((3, ranks[-1]))
+    vidx = np.empty((3, ranks[-1]), np.int32)
+    S = 0
+    w = 0
+    for a in range(d0):
+        for b in range(d1):
+            for r in range(row_words):
+                word = bits[w]
+                w += 1
+                while word != np.uint64(0):
+                    c = r * 64 + int(trailing_zeros(word))
+                    word &= word - np.uint64(1)
+                    i = last[S]
+                    samples[0, S] = points[0, i]
+                    samples[1, S] = points[1, i]
+                    samples[2, S] = points[2, i]
+                    vidx[0, S] = (a + lo[0]) // 2
+                    vidx[1, S] = (b + lo[1]) // 2
+                    vidx[2, S] = (c + lo[2]) // 2
+                    S += 1
+    # Half-voxel cells nest in voxels (voxel = cell // 2), so the voxel box is the cell box halved.
+    vlo = np.empty(3, np.int64)
+    vhi = np.empty(3, np.int64)
+    for d in range(3):
+        vlo[d] = lo[d] // 2
+        vhi[d] = hi[d] // 2
+    e0, e1, e2 = vhi[0] - vlo[0] + 1, vhi[1] - vlo[1] + 1, vhi[2] - vlo[2] + 1
+    # Voxel occupancy with a one-voxel empty border (np.pad), holding 1 + the rank of the
+    # voxel's last sample; a surface voxel has an empty face neighbour.
+    f1, f2 = e1 + 2, e2 + 2
+    occ = np.zeros((e0 + 2) * f1 * f2, np.int32)
+    for k in range(S):
+        occ[((vidx[0, k] - vlo[0] + 1) * f1 + (vidx[1, k] - vlo[1] + 1)) * f2 + (vidx[2, k] - vlo[2] + 1)] = k + 1
+    # Surface voxels in C order of the voxels (not the samples' order): count, then collect.
+    B = 0
+    for fill in range(2):
+        if fill:
+            out = np.empty((3, B))
+        B = 0
+        for a in range(1, e0 + 1):
+            for b in range(1, e1 + 1):
+                row = (a * f1 + b) * f2
+                for c in range(row + 1, row + e2 + 1):
+                    k = occ[c] - 1
+                    if k >= 0 and (occ[c - f1 * f2] == 0 or occ[c + f1 * f2] == 0 or occ[c - f2] == 0
+                                   or occ[c + f2] == 0 or occ[c - 1] == 0 or occ[c + 1] == 0):
+                        if fill:
+                            out[0, B] = samples[0, k]
+                            out[1, B] = samples[1, k]
+                            out[2, B] = samples[2, k]
+                        B += 1
+    return samples, out
+
+
+@njit(cache=True)
+def _sweep_plan(boundary, axis, lo, hi, max_step):
+    """The boundary samples (3, B) grouped by radius band (3, B), where each band starts in them
+    (RADIUS_BANDS + 1,), and each band's angle count (RADIUS_BANDS,), as volume._sweep."""
+    B = boundary.shape[1]
+    radius = np.empty(B)
+    r_max = 0.0
+    for i in range(B):
+        ap = axis[0] * boundary[0, i] + axis[1] * boundary[1, i] + axis[2] * boundary[2, i]
+        s = 0.0
+        for d in range(3):
+            v = boundary[d, i] - axis[d] * ap
+            s += v * v
+        radius[i] = math.sqrt(s)
+        r_max = max(r_max, radius[i])
+    band = np.zeros(B, np.int64)
+    counts = np.zeros(RADIUS_BANDS, np.int64)
+    if r_max > 0.0:
+        f = RADIUS_BANDS / r_max
+        for i in range(B):
+            band[i] = min(int(radius[i] * f), RADIUS_BANDS - 1)
+        for b in range(RADIUS_BANDS):
+            counts[b] = int(math.ceil((hi - lo) * r_max * (b + 1) / RADIUS_BANDS / max_step)) + 1
+    # The boundary samples grouped by band, each group in the samples' order (boundary[:, band == b]).
+    start = np.zeros(RADIUS_BANDS + 1, np.int64)
+    for i in range(B):
+        start[band[i] + 1] += 1
+    for b in range(RADIUS_BANDS):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    members = np.empty((3, B))
+    for i in range(B):
+        for d in range(3):
+            members[d, fill[band[i]]] = boundary[d, i]
+        fill[band[i]] += 1
+    return members, start, counts
+
+
+@njit(cache=True)
+def _sweep_points(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing):
+    """The parent frame's points (3, M), in volume._sweep's order, then the parent link's boxes."""
+    members, start, counts = _sweep_plan(boundary, axis, lo, hi, max_step)
+    S = samples.shape[1]
+    total = 2 * S + _box_count(box_s, spacing)
+    for b in range(RADIUS_BANDS):
+        if counts[b] > 2:
+            total += (counts[b] - 2) * (start[b + 1] - start[b])
+    out = np.empty((3, total))
+    R = np.empty((3, 3))
+    k = 0
+    for end in (lo, hi):
+        _axis_angle(axis, end, R)
+        _turn_into(R, origin, samples, 0, S, out, k)
+        k += S
+    ang = np.empty(int(counts.max()) + 2)
+    for b in range(RADIUS_BANDS):
+        n = counts[b]
+        if n > 2 and start[b + 1] > start[b]:
+            _linspace(lo, hi, n, ang)
+            for a in range(1, n - 1):
+                _axis_angle(axis, ang[a], R)
+                _turn_into(R, origin, members, start[b], start[b + 1], out, k)
+                k += start[b + 1] - start[b]
+    k = _box_points(box_c, box_s, spacing, out, k)
+    return out
+
+
+@njit(cache=True)
+def _count_final(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale1, off1):
+    """Voxels (mount lattice) holding a point of the last sweep or of the mount's boxes.
+
+    The points are marked as they are made, never stored: the lattice box is bounded in
+    advance by the cylinder about the joint axis that holds every turned point (padded by a
+    voxel against rounding), which changes the array, not the count.
+    """
+    members, start, counts = _sweep_plan(boundary, axis, lo, hi, max_step)
+    S = samples.shape[1]
+    boxes = np.empty((3, _box_count(box_s, spacing)))
+    _box_points(box_c, box_s, spacing, boxes, 0)
+    # Bound of the turned points: axial coordinate kept, radius kept.
+    a_min, a_max, rr = np.inf, -np.inf, 0.0
+    for i in range(S):
+        ap = axis[0] * samples[0, i] + axis[1] * samples[1, i] + axis[2] * samples[2, i]
+        s = 0.0
+        for d in range(3):
+            v = samples[d, i] - axis[d] * ap
+            s += v * v
+        a_min, a_max, rr = min(a_min, ap), max(a_max, ap), max(rr, s)
+    rr = math.sqrt(rr)
+    lo_i = np.empty(3, np.int32)
+    hi_i = np.empty(3, np.int32)
+    for d in range(3):
+        ext = rr * math.sqrt(max(1.0 - axis[d] * axis[d], 0.0))
+        x0 = origin[d] + min(axis[d] * a_min, axis[d] * a_max) - ext if S else np.inf
+        x1 = origin[d] + max(axis[d] * a_min, axis[d] * a_max) + ext if S else -np.inf
+        for i in range(boxes.shape[1]):
+            x0, x1 = min(x0, boxes[d, i]), max(x1, boxes[d, i])
+        lo_i[d] = np.int32(math.floor(x0 * scale1 - off1[d])) - 1
+        hi_i[d] = np.int32(math.floor(x1 * scale1 - off1[d])) + 1
+    d1, d2 = hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
+    if (hi_i[0] - lo_i[0] + 1) * d1 * d2 >= 2**31:
+        raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
+    occ = np.zeros(((hi_i[0] - lo_i[0] + 1) * d1 * d2) // 64 + 1, np.uint64)
+    R = np.empty((3, 3))
+    cell = np.empty(max(S, boundary.shape[1], boxes.shape[1]), np.int32)
+    ang = np.empty(int(counts.max()) + 2)
+    for end in (lo, hi):
+        _axis_angle(axis, end, R)
+        _turned_cells(R, origin, samples, 0, S, scale1, off1, lo_i, d1, d2, cell)
+        for i in range(S):
+            _set_bit(occ, cell[i])
+    for b in range(RADIUS_BANDS):
+        n = counts[b]
+        m = start[b + 1] - start[b]
+        if n > 2 and m > 0:
+            _linspace(lo, hi, n, ang)
+            for a in range(1, n - 1):
+                _axis_angle(axis, ang[a], R)
+                _turned_cells(R, origin, members, start[b], start[b + 1], scale1, off1, lo_i, d1, d2, cell)
+                for i in range(m):
+                    _set_bit(occ, cell[i])
+    _cells(boxes, 0, boxes.shape[1], scale1, off1, lo_i, d1, d2, cell)
+    for i in range(boxes.shape[1]):
+        _set_bit(occ, cell[i])
+    return _popcount(occ)
+
+
+@njit(cache=True)
+def swept_voxels(link_c, link_s, joint_axis, joint_origin, joint_lo, joint_hi, voxel_m, offset):
+    """Occupied voxel count of the hierarchical voxel sweep (design.volume's method).
+
+    link_c, link_s : tuples of 4 (n_L, 3) arrays, the part boxes' centres and sizes in the frame
+        of each link (mount, elevation, pan, cyclotorsion), metres.
+    joint_axis, joint_origin : (3, 3) joint k's unit axis and origin in link k's frame.
+    joint_lo, joint_hi : (3,) joint ranges, radians.
+    voxel_m : voxel edge, metres. offset : (3,) volume.LATTICE_OFFSET.
+    """
+    half = voxel_m / 2.0
+    scale2 = 2 / voxel_m
+    off2 = 2 * offset
+    pts = np.empty((3, _box_count(link_s[3], half)))
+    _box_points(link_c[3], link_s[3], half, pts, 0)
+    for k in (2, 1):
+        samples, boundary = _thin(pts, scale2, off2)
+        pts = _sweep_points(samples, boundary, joint_axis[k], joint_origin[k], joint_lo[k], joint_hi[k], half,
+                            link_c[k], link_s[k], half)
+    samples, boundary = _thin(pts, scale2, off2)
+    return _count_final(samples, boundary, joint_axis[0], joint_origin[0], joint_lo[0], joint_hi[0], half,
+                        link_c[0], link_s[0], half, 1 / voxel_m, 1 * offset)
+
+
+# --------------------------------------------------------------------------------------------
+# Self collision: oriented-box overlap (separating-axis theorem) over the posture grid
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def _matmul3(A, B, out):
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = A[r, 0] * B[0, c] + A[r, 1] * B[1, c] + A[r, 2] * B[2, c]
+
+
+@njit(cache=True)
+def obb_penetration(cA, RA, hA, cB, RB, hB):
+    """design.collision.obb_penetration for one pair of boxes (same formulas, scalar)."""
+    C = np.empty((3, 3))
+    absC = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = RA[0, i] * RB[0, j] + RA[1, i] * RB[1, j] + RA[2, i] * RB[2, j]
+            absC[i, j] = abs(C[i, j])
+    d = np.empty(3)
+    for k in range(3):
+        d[k] = cB[k] - cA[k]
+    t = np.empty(3)
+    for i in range(3):
+        t[i] = RA[0, i] * d[0] + RA[1, i] * d[1] + RA[2, i] * d[2]
+    best = np.inf
+    for i in range(3):
+        best = min(best, hA[i] + (absC[i, 0] * hB[0] + absC[i, 1] * hB[1] + absC[i, 2] * hB[2]) - abs(t[i]))
+    for j in range(3):
+        tB = C[0, j] * t[0] + C[1, j] * t[1] + C[2, j] * t[2]
+        best = min(best, (absC[0, j] * hA[0] + absC[1, j] * hA[1] + absC[2, j] * hA[2]) + hB[j] - abs(tB))
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            norm = math.sqrt(C[i1, j] ** 2 + C[i2, j] ** 2)
+            if norm < 1e-6:   # collision.PARALLEL_TOL
+                continue
+            rA = hA[i1] * absC[i2, j] + hA[i2] * absC[i1, j]
+            rB = hB[j1] * absC[i, j2] + hB[j2] * absC[i, j1]
+            dist = abs(t[i2] * C[i1, j] - t[i1] * C[i2, j])
+            best = min(best, (rA + rB - dist) / norm)
+    return best
+
+
+@njit(cache=True)
+def _pose_links(axis, origin, q, R_out, p_out):
+    """Link rotations (4, 3, 3) and origins (4, 3) in the mount frame at angles q (3,), link 0 the
+    mount (kinematics.chain.forward_kinematics)."""
+    Rq = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            R_out[0, r, c] = 1.0 if r == c else 0.0
+        p_out[0, r] = 0.0
+    for i in range(3):
+        for r in range(3):
+            p_out[i + 1, r] = p_out[i, r] + (R_out[i, r, 0] * origin[i, 0] + R_out[i, r, 1] * origin[i, 1]
+                                             + R_out[i, r, 2] * origin[i, 2])
+        _axis_angle(axis[i], q[i], Rq)
+        _matmul3(R_out[i], Rq, R_out[i + 1])
+
+
+@njit(cache=True)
+def _posed(R_links, p_links, link, center, out_c, out_R):
+    for r in range(3):
+        out_c[r] = (R_links[link, r, 0] * center[0] + R_links[link, r, 1] * center[1]
+                    + R_links[link, r, 2] * center[2]) + p_links[link, r]
+        for c in range(3):
+            out_R[r, c] = R_links[link, r, c]
+
+
+@njit(cache=True)
+def collision_count(axis, origin, lo, hi, steps, part_link, part_center, part_half, pairs):
+    """Postures of the steps**3 grid (collision.posture_grid) at which a pair (K, 2) of parts
+    intersects; design.collision.collision_grid's sub-grid shortcut (a pair of links a < b
+    depends on joints a .. b-1 only)."""
+    grid = np.empty((3, steps))
+    for k in range(3):
+        _linspace(lo[k], hi[k], steps, grid[k])
+    hit = np.zeros((steps, steps, steps), np.bool_)
+    R_links = np.empty((4, 3, 3))
+    p_links = np.empty((4, 3))
+    q = np.empty(3)
+    cA, cB = np.empty(3), np.empty(3)
+    RA, RB = np.empty((3, 3)), np.empty((3, 3))
+    n = np.empty(3, np.int64)
+    for k in range(pairs.shape[0]):
+        i, j = pairs[k, 0], pairs[k, 1]
+        a, b = min(part_link[i], part_link[j]), max(part_link[i], part_link[j])
+        for m in range(3):
+            n[m] = steps if a <= m < b else 1
+        for u in range(n[0]):
+            for v in range(n[1]):
+                for w in range(n[2]):
+                    q[0], q[1], q[2] = grid[0, u], grid[1, v], grid[2, w]
+                    _pose_links(axis, origin, q, R_links, p_links)
+                    _posed(R_links, p_links, part_link[i], part_center[i], cA, RA)
+                    _posed(R_links, p_links, part_link[j], part_center[j], cB, RB)
+                    if obb_penetration(cA, RA, part_half[i], cB, RB, part_half[j]) > 0.0:
+                        _fill_hit(hit, u, v, w, n)
+    c = 0
+    for u in range(steps):
+        for v in range(steps):
+            for w in range(steps):
+                c += hit[u, v, w]
+    return c
+
+
+@njit(cache=True)
+def _fill_hit(hit, u, v, w, n):
+    """Mark the postures a sub-grid sample stands for (every value of the joints held fixed)."""
+    steps = hit.shape[0]
+    u0, u1 = (0, steps) if n[0] == 1 else (u, u + 1)
+    v0, v1 = (0, steps) if n[1] == 1 else (v, v + 1)
+    w0, w1 = (0, steps) if n[2] == 1 else (w, w + 1)
+    for uu in range(u0, u1):
+        for vv in range(v0, v1):
+            for ww in range(w0, w1):
+                hit[uu, vv, ww] = True
+
+
+@njit(cache=True)
+def rest_penetration_max(axis, origin, part_link, part_center, part_half, pairs):
+    """Largest penetration over pairs (K, 2) at q = 0, metres (-inf without pairs)."""
+    R_links = np.empty((4, 3, 3))
+    p_links = np.empty((4, 3))
+    _pose_links(axis, origin, np.zeros(3), R_links, p_links)
+    cA, cB = np.empty(3), np.empty(3)
+    RA, RB = np.empty((3, 3)), np.empty((3, 3))
+    best = -np.inf
+    for k in range(pairs.shape[0]):
+        i, j = pairs[k, 0], pairs[k, 1]
+        _posed(R_links, p_links, part_link[i], part_center[i], cA, RA)
+        _posed(R_links, p_links, part_link[j], part_center[j], cB, RB)
+        best = max(best, obb_penetration(cA, RA, part_half[i], cB, RB, part_half[j]))
+    return best
+
+
+# --------------------------------------------------------------------------------------------
+# Dynamics: recursive Newton-Euler over a fixed workload (kinematics.dynamics.inverse_dynamics)
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def _cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(cache=True)
+def workload_torques(R, z, W, DW, wl, dwl, a_base, qdd, origin, mass, com, inertia, armature, tau):
+    """Joint torques tau (T, 3), N m, of one design over a workload of T samples.
+
+    Everything that does not depend on where the parts are is precomputed once per sweep
+    (design.batch.DynamicsPlan): R (T, 3, 3, 3) link rotations, z (T, 3, 3) joint axes, W and
+    DW (T, 4, 3) angular velocity and acceleration of the mount (0) and of each link after its
+    joint, wl and dwl (T, 3, 3) the links' own in link axes, a_base (T, 3) the mount's
+    acceleration minus gravity, all in the mount frame. The design gives origin (3, 3) joint
+    origins in the parent frames, and per link mass (3,), com (3, 3) in the link frame,
+    inertia (3, 3, 3) about the centre of mass in link axes; armature (3,) kg m^2.
+    The link inertia is applied in link axes (R (I (R^T w))), not as R I R^T: equal to
+    rounding, cheaper.
+    """
+    T = R.shape[0]
+    F = np.empty((3, 3))
+    N = np.empty((3, 3))
+    Cc = np.empty((3, 3))
+    o = np.empty((4, 3))
+    for t in range(T):
+        for r in range(3):
+            o[0, r] = 0.0
+        for i in range(3):
+            for r in range(3):
+                if i == 0:
+                    o[1, r] = origin[0, r]
+                else:
+                    o[i + 1, r] = o[i, r] + (R[t, i - 1, r, 0] * origin[i, 0] + R[t, i - 1, r, 1] * origin[i, 1]
+                                             + R[t, i - 1, r, 2] * origin[i, 2])
+        a0, a1, a2 = a_base[t, 0], a_base[t, 1], a_base[t, 2]
+        for i in range(3):
+            r0, r1, r2 = o[i + 1, 0] - o[i, 0], o[i + 1, 1] - o[i, 1], o[i + 1, 2] - o[i, 2]
+            w0, w1, w2 = W[t, i, 0], W[t, i, 1], W[t, i, 2]
+            x0, x1, x2 = _cross(DW[t, i, 0], DW[t, i, 1], DW[t, i, 2], r0, r1, r2)
+            y0, y1, y2 = _cross(w0, w1, w2, r0, r1, r2)
+            y0, y1, y2 = _cross(w0, w1, w2, y0, y1, y2)
+            a0, a1, a2 = a0 + x0 + y0, a1 + x1 + y1, a2 + x2 + y2
+            w0, w1, w2 = W[t, i + 1, 0], W[t, i + 1, 1], W[t, i + 1, 2]
+            d0, d1, d2 = DW[t, i + 1, 0], DW[t, i + 1, 1], DW[t, i + 1, 2]
+            c0 = R[t, i, 0, 0] * com[i, 0] + R[t, i, 0, 1] * com[i, 1] + R[t, i, 0, 2] * com[i, 2]
+            c1 = R[t, i, 1, 0] * com[i, 0] + R[t, i, 1, 1] * com[i, 1] + R[t, i, 1, 2] * com[i, 2]
+            c2 = R[t, i, 2, 0] * com[i, 0] + R[t, i, 2, 1] * com[i, 1] + R[t, i, 2, 2] * com[i, 2]
+            x0, x1, x2 = _cross(d0, d1, d2, c0, c1, c2)
+            y0, y1, y2 = _cross(w0, w1, w2, c0, c1, c2)
+            y0, y1, y2 = _cross(w0, w1, w2, y0, y1, y2)
+            m = mass[i]
+            F[i, 0], F[i, 1], F[i, 2] = m * (a0 + x0 + y0), m * (a1 + x1 + y1), m * (a2 + x2 + y2)
+            # Euler's equation in link axes: I dw' + w' x I w', then back to the mount frame.
+            I = inertia[i]
+            u0, u1, u2 = wl[t, i, 0], wl[t, i, 1], wl[t, i, 2]
+            v0, v1, v2 = dwl[t, i, 0], dwl[t, i, 1], dwl[t, i, 2]
+            iw0 = I[0, 0] * u0 + I[0, 1] * u1 + I[0, 2] * u2
+            iw1 = I[1, 0] * u0 + I[1, 1] * u1 + I[1, 2] * u2
+            iw2 = I[2, 0] * u0 + I[2, 1] * u1 + I[2, 2] * u2
+            g0, g1, g2 = _cross(u0, u1, u2, iw0, iw1, iw2)
+            n0 = I[0, 0] * v0 + I[0, 1] * v1 + I[0, 2] * v2 + g0
+            n1 = I[1, 0] * v0 + I[1, 1] * v1 + I[1, 2] * v2 + g1
+            n2 = I[2, 0] * v0 + I[2, 1] * v1 + I[2, 2] * v2 + g2
+            for r in range(3):
+                N[i, r] = R[t, i, r, 0] * n0 + R[t, i, r, 1] * n1 + R[t, i, r, 2] * n2
+            Cc[i, 0], Cc[i, 1], Cc[i, 2] = c0, c1, c2
+        f0 = f1 = f2 = 0.0
+        n0 = n1 = n2 = 0.0
+        for i in (2, 1, 0):
+            if i < 2:
+                s0, s1, s2 = o[i + 2, 0] - o[i + 1, 0], o[i + 2, 1] - o[i + 1, 1], o[i + 2, 2] - o[i + 1, 2]
+            else:
+                s0 = s1 = s2 = 0.0
+            x0, x1, x2 = _cross(Cc[i, 0], Cc[i, 1], Cc[i, 2], F[i, 0], F[i, 1], F[i, 2])
+            y0, y1, y2 = _cross(s0, s1, s2, f0, f1, f2)
+            n0, n1, n2 = N[i, 0] + n0 + x0 + y0, N[i, 1] + n1 + x1 + y1, N[i, 2] + n2 + x2 + y2
+            f0, f1, f2 = F[i, 0] + f0, F[i, 1] + f1, F[i, 2] + f2
+            tau[t, i] = (z[t, i, 0] * n0 + z[t, i, 1] * n1 + z[t, i, 2] * n2) + armature[i] * qdd[t, i]

@@ -1,0 +1,86 @@
+"""The batched, compiled evaluation against today's code (kept in reference_criteria.py).
+
+200 random designs of the default sweep: the working volume within 1 % (it is the same voxel
+count in practice), the collision fraction, the radii and the rest-pose constraints to the bit,
+the torque criteria to rounding (1e-12 relative; the kernels sum in another order).
+"""
+
+import numpy as np
+import pytest
+
+import reference_criteria as RC
+from design.batch import arrays_from_head, arrays_from_variables
+from design.layout import head_from_variables
+from design.problem import EvaluationContext, evaluate_batch, evaluate_design, score_head
+from design.sweep_file import CONSTRAINTS, CRITERIA, load_sweep
+from kinematics import reference_head
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    return EvaluationContext.from_spec(load_sweep())
+
+
+@pytest.fixture(scope="module")
+def designs(ctx):
+    X = np.random.default_rng(48).uniform(ctx.spec.xl, ctx.spec.xu, (200, 12))
+    F, G = evaluate_batch(X, ctx)
+    ref = [RC.reference_score(head_from_variables(x, ctx.spec), ctx) for x in X]
+    Fr = np.array([[c[k] for k in CRITERIA] for c, _ in ref])
+    Gr = np.array([[g[k] for k in CONSTRAINTS] for _, g in ref])
+    return X, F, G, Fr, Gr
+
+
+def test_volume_within_one_percent(designs):
+    _, F, _, Fr, _ = designs
+    rel = np.abs(F[:, 0] / Fr[:, 0] - 1)
+    assert rel.max() <= 0.01
+    assert np.median(rel) == 0.0     # the same voxel count, not merely close
+
+
+def test_exact_criteria_to_the_bit(designs):
+    _, F, G, Fr, Gr = designs
+    np.testing.assert_array_equal(F[:, 1], Fr[:, 1])        # self collision
+    assert 0 < np.count_nonzero(Fr[:, 1]) < len(Fr)          # the sample holds both kinds
+    np.testing.assert_array_equal(F[:, 4:], Fr[:, 4:])       # radii
+    np.testing.assert_array_equal(G[:, 1:], Gr[:, 1:])       # rest penetration, part overlap
+
+
+def test_torque_criteria_to_rounding(designs):
+    _, F, G, Fr, Gr = designs
+    np.testing.assert_allclose(F[:, 2:4], Fr[:, 2:4], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(G[:, 0], Gr[:, 0], rtol=1e-12, atol=1e-15)
+
+
+def test_single_design_and_any_head_agree_with_the_batch(ctx, designs):
+    X, F, G, _, _ = designs
+    f, g = evaluate_design(X[3], ctx)
+    np.testing.assert_array_equal(f, F[3])
+    crit, cons = score_head(head_from_variables(X[3], ctx.spec), ctx)
+    np.testing.assert_allclose(list(crit.values()), F[3], rtol=1e-13)
+    np.testing.assert_allclose(list(cons.values()), G[3], rtol=1e-13, atol=1e-16)
+
+
+def test_reference_head_as_before(ctx):
+    head = reference_head()
+    crit, cons = score_head(head, ctx)
+    rc, rg = RC.reference_score(head, ctx)
+    assert crit["working_volume_cm3"] == pytest.approx(rc["working_volume_cm3"], rel=0.01)
+    for k in CRITERIA[1:]:
+        assert crit[k] == pytest.approx(rc[k], rel=1e-12, abs=1e-15), k
+    for k in CONSTRAINTS:
+        assert cons[k] == pytest.approx(rg[k], rel=1e-12, abs=1e-15), k
+
+
+def test_layout_arrays_are_the_heads(ctx, designs):
+    X = designs[0][:5]
+    A = arrays_from_variables(X, ctx.spec)
+    for d, x in enumerate(X):
+        B = arrays_from_head(head_from_variables(x, ctx.spec))
+        np.testing.assert_array_equal(A.link, B.link)
+        np.testing.assert_allclose(A.center[d], B.center[0], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(A.mass[d], B.mass[0], rtol=1e-15)
+        np.testing.assert_array_equal(A.size[d], B.size[0])
+        np.testing.assert_array_equal(A.origin[d], B.origin[0])
+        np.testing.assert_array_equal(A.cam[d], B.cam[0])
+        np.testing.assert_array_equal(A.lo, B.lo)
