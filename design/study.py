@@ -9,7 +9,7 @@ from pathlib import Path
 from kinematics.outdir import output_folder
 
 from .report import DesignOutputs, write_outputs
-from .sweep import check_client_options, check_sweep_folder, open_client, run_options, run_sweep
+from .sweep import SWEEP, check_client_options, check_sweep_folder, open_client, run_options, run_sweep
 from .sweep_file import SweepSpec
 
 
@@ -29,7 +29,8 @@ def optimise(spec: SweepSpec, out: str | Path, *, evaluations: int | None = None
     out = Path(out)
     check_client_options(workers, scheduler, dashboard)
     budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
-    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget)):
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget), kind=SWEEP,
+                       reuse=True):
         client = open_client(workers, scheduler, dashboard)
         try:
             result = run_sweep(spec, out, evaluations=budget, seed=seed, algorithm=algorithm, resume=resume,

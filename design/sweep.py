@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.outdir import output_folder
 
@@ -35,6 +35,8 @@ from .problem import EvaluationContext, HeadLayoutProblem, evaluate_batch
 from .search import RandomVariation, nsga3
 from .sweep_file import CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec, dump_spec
 
+#: The kind (kinematics.outdir) of a sweep's folder; it continues its own (--resume).
+SWEEP = "design optimise"
 COLUMNS = ("eval_id", "batch", "index", "algorithm", *VARIABLES, *CRITERIA, *CONSTRAINTS, "feasible")
 
 
@@ -333,7 +335,8 @@ def run_sweep(spec: SweepSpec, out: Path, *, evaluations: int | None = None, see
     """
     out = Path(out)
     budget, seed, algorithm = run_options(spec, evaluations, seed, algorithm)
-    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget)):
+    with output_folder(out, check=lambda d: check_sweep_folder(spec, d, seed, algorithm, resume, budget), kind=SWEEP,
+                       reuse=True):
         return _run(spec, out, budget, seed, algorithm, resume, client, progress, ctx)
 
 
@@ -357,8 +360,7 @@ def _run(spec: SweepSpec, out: Path, budget: int, seed: int, algorithm: str, res
                               f"{budget}; resume with --evaluations {len(logged)} or more")
     log = _Log(log_path, next_id=max((int(r["eval_id"]) for r in rows), default=-1) + 1)
     reused = evaluated = 0
-    bar = tqdm(total=budget, desc=f"design {algorithm}", unit="eval",
-               disable=not progress)
+    bar = progress_bar(total=budget, desc=f"design {algorithm}", unit="eval", disable=not progress)
     try:
         while state.evaluations_done < budget:
             X = state.algorithm.ask()[: budget - state.evaluations_done]

@@ -66,6 +66,9 @@ from .tomlfile import read_toml
 #: Distortion terms each lens model takes, in the order OpenCV lists them (from ``LENSES``).
 LENS_MODELS: dict[str, tuple[str, ...]] = {name: lens.terms for name, lens in LENSES.items()}
 _ALL_TERMS = TERMS
+#: The largest image side (px) a camera may have: MuJoCo's offscreen buffer and every reader
+#: allocate whole frames, and no camera here comes near it.
+MAX_IMAGE_SIDE = 8192
 _REQUIRED = ("width", "height", "fx", "fy", "cx", "cy")
 
 # What each field means, appended to error messages so the user knows what to write.
@@ -183,6 +186,9 @@ class CameraIntrinsics:
                 fail(name, "must be an integer number of pixels")
             if v <= 0:
                 fail(name, "must be positive")
+            if v > MAX_IMAGE_SIDE:
+                fail(name, f"is beyond {MAX_IMAGE_SIDE} pixels, more than the renderer and the readers take",
+                     f"give the camera's real image size, at most {MAX_IMAGE_SIDE} a side")
         for name in ("fx", "fy", "cx", "cy") + _ALL_TERMS:
             v = getattr(self, name)
             if not _is_real(v):
@@ -192,6 +198,10 @@ class CameraIntrinsics:
         for name in ("fx", "fy"):
             if getattr(self, name) <= 0:
                 fail(name, "must be positive")
+        for name, side in (("cx", self.width), ("cy", self.height)):
+            if not -0.5 <= getattr(self, name) <= side - 0.5:
+                fail(name, f"lies outside the {self.width}x{self.height} image (-0.5 .. {side - 0.5:g})",
+                     "the principal point is a pixel of the image, near its centre; check the calibration")
         if not isinstance(self.model, str) or self.model not in LENS_MODELS:
             fail("model", "is not a known lens model")
         for name in _ALL_TERMS:

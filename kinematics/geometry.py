@@ -301,9 +301,17 @@ def _vec(v, where: str, n: int = 3) -> tuple[float, ...]:
     return tuple(arr)
 
 
+#: No length of a wearable head reaches this (metres): a larger one is a unit mistake, and one
+#: near 1e308 overflows to inf in the first product.
+MAX_LENGTH_M = 10.0
+
+
 def _check_vec(v, where: str) -> None:
     if not all(math.isfinite(x) for x in v):
         raise HeadFileError(f"{where} = {list(v)} has a non-finite value; give finite numbers in metres")
+    if max(abs(x) for x in v) > MAX_LENGTH_M:
+        raise HeadFileError(f"{where} = {brief(list(v))} is beyond {MAX_LENGTH_M:g} m; give the head's lengths in "
+                            f"metres (a servo is about 0.02)")
 
 
 def _check_unit(v, where: str) -> None:

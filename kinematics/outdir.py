@@ -10,7 +10,11 @@ writes it inside :func:`output_folder`:
   result that looks whole;
 - a lock (``.wvr-lock``, an ``flock`` the kernel drops when the process dies) keeps a second run
   out of the folder while the first one writes it; a lock left by a dead process is simply
-  taken over.
+  taken over;
+- ``.wvr-out.json`` records which command wrote the folder: a run refuses a folder another
+  command wrote, a finished one of its own kind (unless the kind continues its folders: a
+  sweep's ``--resume``) and a non-empty one no wvr run wrote, so no result is ever overwritten;
+  a killed run's folder of its own kind is emptied first, so no leftover passes for this run's.
 
 The marker is the one mechanism, rather than a temporary sibling renamed at the end, because a
 killed sweep resumes in its own folder (``--resume``) and a recording is read while it grows.
@@ -20,16 +24,20 @@ This lives in ``kinematics`` only because every package may import it (the impor
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import shutil
 import sys
 import time
+import uuid
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
 INCOMPLETE = "INCOMPLETE"
 LOCK = ".wvr-lock"
+#: What wrote the folder: {"kind": the command, "command": its line, "started", "pid", "run": an id}.
+KIND_FILE = ".wvr-out.json"
 
 #: Folders this process is writing now (resolved paths): a runner called inside a command that
 #: already holds the folder just writes into it.
@@ -62,6 +70,11 @@ def check_output(path: str | Path, flag: str = "--out") -> Path:
     if parent.exists() and not os.access(parent, os.W_OK | os.X_OK):
         raise OutputFolderError(f"{flag} {path}: {parent} is not writable; choose a {flag} folder you can write to")
     return path
+
+
+def writing(folder: str | Path) -> bool:
+    """Whether this process is writing ``folder`` now (inside an :func:`output_folder` block)."""
+    return Path(folder).resolve() in _ACTIVE
 
 
 def is_incomplete(folder: str | Path) -> bool:
@@ -138,72 +151,221 @@ def _take_lock(folder: Path, flag: str) -> int:
 
 
 def _command() -> str:
-    args = [Path(sys.argv[0]).name] + sys.argv[1:] if sys.argv and sys.argv[0] else ["python"]
+    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+    if name == "__main__.py":                   # python -m wvr: name the package, as the user knows it
+        name = Path(sys.argv[0]).parent.name
+    args = [name] + sys.argv[1:] if sys.argv else [name]
     text = " ".join(args)
     return text if len(text) <= 120 else text[:117] + "..."
 
 
-@contextmanager
-def output_folder(path: str | Path, flag: str = "--out",
-                  check: Callable[[Path], None] | None = None) -> Iterator[Path]:
-    """Write a result folder: checked and created, locked, marked INCOMPLETE until the block ends.
+def _read_kind(folder: Path) -> dict | None:
+    """The record of the wvr run that wrote ``folder`` (its KIND_FILE), or None without one."""
+    try:
+        text = (folder / KIND_FILE).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None if not (folder / KIND_FILE).exists() else {"kind": "?", "command": "an unreadable " + KIND_FILE}
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        doc = None
+    if not isinstance(doc, dict) or not isinstance(doc.get("kind"), str):
+        return {"kind": "?", "command": "a damaged " + KIND_FILE}
+    return doc
 
+
+def _describe(doc: dict) -> str:
+    cmd = doc.get("command")
+    return f"wvr {doc['kind']}" + (f" ({cmd}" + (f", {doc['started']}" if doc.get("started") else "") + ")"
+                                   if isinstance(cmd, str) else "")
+
+
+def _judge(path: Path, kind: str, flag: str, reuse: bool, locked: bool = False) -> bool:
+    """Whether a run of ``kind`` may write into ``path`` (read only): True when it must first
+    clear what a killed run of its kind left; OutputFolderError (one line) when it may not."""
+    if not path.is_dir():
+        return False
+    entries = sorted(p.name for p in path.iterdir() if p.name != LOCK)
+    if not entries:
+        return False
+    holder = None if locked else _holder(path)     # (our own lock would read as another's)
+    if holder is not None:
+        raise OutputFolderError(f"{flag} {path}: another run is writing into this folder ({holder}); wait for it "
+                                f"to finish, or choose another {flag}")
+    doc = _read_kind(path)
+    if doc is None:
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise OutputFolderError(f"{flag} {path}: is not empty and no wvr run wrote it (it holds {shown}); give "
+                                f"another {flag} (a new or empty folder), or move those files away")
+    if doc["kind"] != kind:
+        raise OutputFolderError(f"{flag} {path}: holds the results of another command, {_describe(doc)}; give "
+                                f"another {flag}, or delete {path} first")
+    if reuse:
+        return False            # the kind's own check decides (a sweep resumes, a HIL session is reused)
+    if (path / INCOMPLETE).exists():
+        return True
+    raise OutputFolderError(f"{flag} {path}: already holds the finished results of {_describe(doc)}; give "
+                            f"another {flag}, or delete {path} first to run it again")
+
+
+def check_folder(path: str | Path, kind: str, flag: str = "--out", reuse: bool = False) -> Path:
+    """Refuse, before any work and without touching anything, an output folder a run of
+    ``kind`` (the command, e.g. "slam") may not write: one :func:`check_output` refuses, one
+    another command or another run wrote, one no wvr run wrote that is not empty, one a live
+    process writes. A folder a killed run of the same kind left is accepted (:func:`output_folder`
+    clears it). Returns the path."""
+    path = check_output(path, flag)
+    _judge(path, kind, flag, reuse)
+    return path
+
+
+def check_output_file(path: str | Path, flag: str = "--out", suffix: str | None = None) -> Path:
+    """Refuse, before any work, an output file that cannot be written: an existing folder, a
+    missing folder to write it in, a parent that is a file or not writable, or (with
+    ``suffix``, e.g. ".toml") another suffix. Returns the path; nothing is created."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputFolderError(f"{flag} {path}: is a folder; give the path of the file to write (e.g. "
+                                f"{path / ('out' + (suffix or ''))})")
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise OutputFolderError(f"{flag} {path}: give a file name ending in {suffix}")
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise OutputFolderError(f"{flag} {path}: {parent} is a file, not a folder; choose another {flag}")
+    if not parent.exists():
+        raise OutputFolderError(f"{flag} {path}: the folder {parent} does not exist; create it first or choose "
+                                f"another {flag}")
+    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise OutputFolderError(f"{flag} {path}: cannot be written there; choose a {flag} you can write to")
+    return path
+
+
+def _clear(path: Path, kind: str, flag: str, say: Callable[[str], None]) -> None:
+    """Empty a folder a killed run of ``kind`` left (everything but our lock), saying so."""
+    entries = [p for p in path.iterdir() if p.name != LOCK]
+    for p in entries:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    say(f"{flag} {path}: a killed wvr {kind} run left it incomplete; removed its {len(entries)} files and "
+        f"folders before this run writes it")
+
+
+def _nothing_written(folder: Path) -> bool:
+    """Whether ``folder`` holds no file but our own markers (empty folders do not count)."""
+    for root, _, files in os.walk(folder):
+        if any(not (Path(root) == folder and f in (INCOMPLETE, LOCK, KIND_FILE)) for f in files):
+            return False
+    return True
+
+
+def _stderr(text: str) -> None:
+    print(f"wvr: {text}", file=sys.stderr, flush=True)
+
+
+class OutputFolder:
+    """A result folder being written: checked, created, locked, marked with its kind and
+    INCOMPLETE, until :meth:`close` (see :func:`output_folder`, the usual way in).
+
+    kind : the command writing it ("slam", "sim run", "recording"...), recorded in KIND_FILE;
+        a folder another kind wrote is refused, and so is a finished one of the same kind unless
+        ``reuse`` (a kind that continues its own folder: a sweep's --resume, which its ``check``
+        judges). A killed run's folder of the same kind is emptied first (one line on stderr).
+    """
+
+    def __init__(self, path: str | Path, flag: str = "--out", check: Callable[[Path], None] | None = None,
+                 kind: str = "results", reuse: bool = False, say: Callable[[str], None] = _stderr):
+        path = check_output(path, flag)
+        self.path, self._flag, self._fd = path, flag, None
+        self._key = path.resolve()
+        self.nested = self._key in _ACTIVE
+        if self.nested:
+            return
+        self._created = not path.exists()
+        _judge(path, kind, flag, reuse)      # before anything is made or locked: a refusal changes nothing
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputFolderError(f"{flag} {path}: cannot create it ({e.strerror or e}); choose a {flag} folder "
+                                    f"you can write to") from None
+        try:
+            self._fd = _take_lock(path, flag)
+            if _judge(path, kind, flag, reuse, locked=True):   # again under the lock: the folder may have changed
+                _clear(path, kind, flag, say)
+            self._before = {p.name for p in path.iterdir()}   # what a refusal or a failure leaves as it was
+            if check is not None:
+                check(path)
+            (path / KIND_FILE).write_text(json.dumps({
+                "kind": kind, "command": _command(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "pid": os.getpid(), "run": uuid.uuid4().hex}) + "\n")
+            (path / INCOMPLETE).write_text(
+                f"{_command()}\nstarted {time.strftime('%Y-%m-%d %H:%M:%S')} by pid {os.getpid()}; this file is "
+                f"removed when the run finishes, so while it is here the folder is not complete\n")
+        except BaseException as e:
+            self._undo()
+            if isinstance(e, OSError):
+                raise OutputFolderError(f"{flag} {path}: cannot write into it ({e.strerror or e}); choose a {flag} "
+                                        f"folder you can write to") from None
+            raise
+        _ACTIVE.add(self._key)
+
+    def _undo(self) -> None:
+        """Leave the folder as it was found: a new one removed, an existing one without our files
+        (and, if it was empty, without the empty folders made in it)."""
+        if self._fd is not None:
+            for name in (INCOMPLETE, KIND_FILE):
+                if name not in getattr(self, "_before", ()):
+                    (self.path / name).unlink(missing_ok=True)
+            if not (getattr(self, "_before", {LOCK}) - {LOCK}):
+                for p in self.path.iterdir():
+                    if p.is_dir() and not p.is_symlink():
+                        shutil.rmtree(p, ignore_errors=True)
+            _release(self.path, self._fd)
+            self._fd = None
+        if self._created:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    def close(self, complete: bool = True) -> None:
+        """End the write: complete removes INCOMPLETE; otherwise the marker stays (readers refuse
+        the folder), except that a folder nothing was written into goes back to how it was."""
+        if self.nested or self._fd is None:
+            return
+        _ACTIVE.discard(self._key)
+        if complete:
+            (self.path / INCOMPLETE).unlink(missing_ok=True)
+            _release(self.path, self._fd)
+            self._fd = None
+        elif not (self._before - {LOCK}) and _nothing_written(self.path):
+            self._undo()            # it was empty and no file was written: as it was
+        else:
+            _release(self.path, self._fd)
+            self._fd = None
+
+
+@contextmanager
+def output_folder(path: str | Path, flag: str = "--out", check: Callable[[Path], None] | None = None,
+                  kind: str = "results", reuse: bool = False) -> Iterator[Path]:
+    """Write a result folder: checked and created, locked, marked with its kind and INCOMPLETE
+    until the block ends.
+
+    kind, reuse : see :class:`OutputFolder` (what may be written into, what a killed run left).
     check : called with the folder once the lock is held and before the marker is written, to
         refuse what is there (a sweep without --resume into a finished sweep): a refusal leaves
         an existing folder exactly as it was.
     On normal exit the marker is removed (the folder is complete) and the lock released. On an
-    exception the marker stays (a folder this call created and nothing was written into is
-    removed again), so readers refuse what was left. Nested use on the same folder (a command
-    around a runner) is one write: the outer block owns the marker, the lock and the check.
+    exception the marker stays (a folder nothing was written into goes back to how it was: one
+    this call created is removed), so readers refuse what was left. Nested use on the same
+    folder (a command around a runner) is one write: the outer block owns the marker, the lock
+    and the check.
     """
-    path = check_output(path, flag)
-    key = path.resolve()
-    if key in _ACTIVE:
-        yield path
-        return
-    created = not path.exists()
+    folder = OutputFolder(path, flag, check=check, kind=kind, reuse=reuse)
     try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OutputFolderError(f"{flag} {path}: cannot create it ({e.strerror or e}); choose a {flag} folder "
-                                f"you can write to") from None
-    try:
-        fd = _take_lock(path, flag)
-    except OutputFolderError:
-        if created:
-            shutil.rmtree(path, ignore_errors=True)
-        raise
-    if check is not None:
-        try:
-            check(path)
-        except BaseException:
-            _release(path, fd)
-            if created:
-                shutil.rmtree(path, ignore_errors=True)
-            raise
-    marker = path / INCOMPLETE
-    try:
-        marker.write_text(f"{_command()}\nstarted {time.strftime('%Y-%m-%d %H:%M:%S')} by pid {os.getpid()}; this "
-                          f"file is removed when the run finishes, so while it is here the folder is not complete\n")
-    except OSError as e:
-        _release(path, fd)
-        raise OutputFolderError(f"{flag} {path}: cannot write into it ({e.strerror or e}); choose a {flag} folder "
-                                f"you can write to") from None
-    _ACTIVE.add(key)
-    try:
-        yield path
+        yield folder.path
     except BaseException:
-        _ACTIVE.discard(key)
-        if created and {p.name for p in path.iterdir()} <= {INCOMPLETE, LOCK}:
-            marker.unlink(missing_ok=True)
-            _release(path, fd)
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            _release(path, fd)
+        folder.close(complete=False)
         raise
-    _ACTIVE.discard(key)
-    marker.unlink(missing_ok=True)
-    _release(path, fd)
+    folder.close(complete=True)
 
 
 def _release(folder: Path, fd: int) -> None:

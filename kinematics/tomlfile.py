@@ -6,6 +6,8 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
+from .nesting import deeper_than, nesting_message
+
 
 def read_toml(path: str | Path, error: type[Exception], what: str) -> dict:
     """Parse a TOML file, raising ``error`` with the path and a fix if it is missing or malformed.
@@ -13,11 +15,17 @@ def read_toml(path: str | Path, error: type[Exception], what: str) -> dict:
     ``what`` completes "give ..." in the missing-file message, e.g. "the path of a camera.toml".
     """
     path = Path(path)
+    if path.is_dir():
+        raise error(f"{path}: is a folder, not a file; give {what}")
     if not path.is_file():
         raise error(f"{path}: no such file; give {what}")
     try:
         # utf-8-sig: files saved by some editors start with a byte-order mark.
-        return tomllib.loads(path.read_text(encoding="utf-8-sig"))
+        text = path.read_text(encoding="utf-8-sig")
+        line = deeper_than(text, "toml")
+        if line is not None:
+            raise error(nesting_message(str(path), line))
+        return tomllib.loads(text)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise error(f"{path}: not valid TOML ({e})") from None
 

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinematics.textnumbers import first_non_number
+from kinematics.nesting import deeper_than, nesting_message
 
 from .body import BodyError
 
@@ -149,6 +150,9 @@ def read_bvh(path) -> BvhData:
     motion_line = next((i for i, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
     if motion_line is None:
         raise BodyError(f"{name}: no MOTION section; expected a BVH file with HIERARCHY then MOTION")
+    deep = deeper_than("\n".join(lines[:motion_line]), "braces")   # joint() recurses once per level
+    if deep is not None:
+        raise BodyError(nesting_message(name, deep))
     tk = _Tokens(name, lines[:motion_line])
     tk.expect("HIERARCHY")
     names: list[str] = []

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kinematics.nesting import deeper_than, nesting_message
+
 from .body import SEGMENT_INDEX, SEGMENTS, Body, BodyError
 
 __all__ = [
@@ -89,7 +91,11 @@ def load_joints_json(path) -> np.ndarray:
     """(16, 3) joint centres, metres, rows in SEGMENTS order, from ``{segment: [x, y, z]}`` JSON."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        text = path.read_text()
+        line = deeper_than(text, "json")
+        if line is not None:
+            raise BodyError(nesting_message(path.name, line))
+        data = json.loads(text)
     except json.JSONDecodeError as e:
         raise BodyError(f"{path.name} line {e.lineno}: not valid JSON ({e.msg}); expected "
                         '{"pelvis": [x, y, z], ...} for the 16 segments') from None

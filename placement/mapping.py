@@ -64,7 +64,7 @@ def placement_map(out: str | Path, body: Body | None = None, motions: list[Motio
     scoring starts, INCOMPLETE until everything is written); returns what it found."""
     body = make_body() if body is None else body
     motions = default_motions(body) if not motions else motions
-    with output_folder(out) as out:
+    with output_folder(out, kind="placement map") as out:
         table = score_body(body, default_poses(body), motions, settings, progress=progress)
         write_scores_csv(table, out / "scores.csv")
         maps = render_all_maps(body, table, out) if pictures else {}

@@ -38,7 +38,7 @@ from functools import partial
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.rays import RayCaster
 from kinematics.summary import fibonacci_sphere
@@ -113,7 +113,7 @@ def fov_scores(body: Body, poses: dict[str, Pose], rays: int = 2048, standoff_m:
                progress: bool = False) -> np.ndarray:
     """(F,) mean over poses of the unblocked fraction of the sphere of directions around each camera."""
     total = np.zeros(body.face_count)
-    with tqdm(total=len(poses), desc="field of view", unit="pose", disable=not progress) as bar:
+    with progress_bar(total=len(poses), desc="field of view", unit="pose", disable=not progress) as bar:
         for pose in poses.values():
             cams, _ = camera_points(body, pose, standoff_m)
             total += fov_fraction(RayCaster(body.posed_vertices(pose), body.faces), cams, rays)
@@ -151,7 +151,7 @@ def handling_scores(body: Body, poses: dict[str, Pose], points_rest: np.ndarray,
     cos_cone = math.cos(math.radians(cone_deg))
     ab = SEGMENT_INDEX["abdomen"]
     per_chunk = max(1, (1 << 20) // len(points_rest))
-    with tqdm(total=F * len(poses), desc="handling view", unit="place", disable=not progress) as bar:
+    with progress_bar(total=F * len(poses), desc="handling view", unit="place", disable=not progress) as bar:
         for pose in poses.values():
             G = body.segment_transforms(pose)[ab]
             pts = points_rest @ G[:3, :3].T + G[:3, 3]
@@ -244,7 +244,7 @@ def motion_scores(body: Body, motions: list[Motion], standoff_m: float = 0.02, f
     cam_rest = c0 + standoff_m * n0
     seg = body.face_segment
     out = {k: np.zeros(F) for k in ("motion_mm", "motion_deg", "motion_pelvis_mm", "motion_pelvis_deg")}
-    for m in tqdm(motions, desc="motion", unit="motion", disable=not progress):
+    for m in progress_bar(motions, desc="motion", unit="motion", disable=not progress):
         # The progression from every frame (the smoothing needs them), the cameras from a few.
         keep = m.subsample_indices(frames)
         travel = progression(body, m)[keep]

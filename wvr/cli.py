@@ -14,6 +14,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 import argparse  # noqa: E402
+import contextlib
 import json
 import math
 import re
@@ -24,7 +25,7 @@ import numpy as np
 
 from kinematics import JOINT_NAMES, HeadFileError, ServoCommandError, gaze_at_direction, gaze_at_point, load_head
 from kinematics.camera import CameraFileError, default_camera, load_camera
-from kinematics.outdir import check_output, output_folder
+from kinematics.outdir import check_folder, check_output, check_output_file, output_folder
 
 from wvr.assemble import make_twin, wearer_for  # noqa: E402,F401  (the composition root; re-exported)
 
@@ -46,6 +47,11 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
 
 
+#: The largest magnitude of a command-line vector's component (m, px or deg): beyond it a
+#: product overflows, and nothing in a wearable's world is that far.
+MAX_COMPONENT = 1e12
+
+
 def _numbers(names: tuple[str, ...], unit: str):
     """An argparse type for a comma-separated vector of len(names) finite numbers (names and
     unit say what they are in the message)."""
@@ -61,6 +67,9 @@ def _numbers(names: tuple[str, ...], unit: str):
             raise argparse.ArgumentTypeError(f"{text!r} must have {len(names)} components {form} ({unit})")
         if not np.all(np.isfinite(v)):
             raise argparse.ArgumentTypeError(f"{text!r}: every component of {form} must be a finite number ({unit})")
+        if np.max(np.abs(v)) > MAX_COMPONENT:
+            raise argparse.ArgumentTypeError(f"{text!r}: every component of {form} must lie within "
+                                             f"+-{MAX_COMPONENT:g} ({unit})")
         return v
 
     parse.__name__ = form   # argparse names the type in some messages
@@ -74,6 +83,9 @@ _box = _numbers(("X", "Y", "W", "H"), "pixels: corner, width, height")
 #: Options whose value is a vector: "--target -1.35,-0.6,0.85" must not be read as an option.
 _VECTOR_OPTIONS = {"--target", "--up", "--current", "--posture", "--init"}
 _NEGATIVE_VECTOR = re.compile(r"-[0-9.][^\s]*,.*")
+#: Options whose value is a size WxH: "--fovea -320x240" must reach its own check, not argparse's.
+_SIZE_OPTIONS = {"--fovea"}
+_NEGATIVE_SIZE = re.compile(r"-[0-9.]+[xX].*")
 
 
 def _with_negative_vectors(argv: list[str]) -> list[str]:
@@ -84,7 +96,8 @@ def _with_negative_vectors(argv: list[str]) -> list[str]:
     out, i = [], 0
     while i < len(argv):
         a = argv[i]
-        if a in _VECTOR_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VECTOR.fullmatch(argv[i + 1]):
+        if ((a in _VECTOR_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VECTOR.fullmatch(argv[i + 1]))
+                or (a in _SIZE_OPTIONS and i + 1 < len(argv) and _NEGATIVE_SIZE.fullmatch(argv[i + 1]))):
             out.append(f"{a}={argv[i + 1]}")
             i += 2
         elif a == "goto" and i + 1 < len(argv) and _NEGATIVE_VECTOR.fullmatch(argv[i + 1]):
@@ -112,6 +125,12 @@ def _number(kind: type, test, what: str):
 
 
 _positive_int = _number(int, lambda v: v > 0, "a whole number above 0")
+#: Gaze directions for show's coverage: a few thousand resolve it; millions only take minutes.
+_directions = _number(int, lambda v: 0 < v <= 200_000, "a whole number of directions, 1 to 200000")
+#: Seeds and other counts from 0: argparse names the flag in its message ("argument --seed: ...").
+_nonneg_int = _number(int, lambda v: v >= 0, "a whole number >= 0")
+#: How far off the (simulated) operator clicks, pixels: what sim record has always allowed.
+_click_error = _number(float, lambda v: 0 <= v <= 50, "the click error in pixels, 0 to 50")
 _positive = _number(float, lambda v: v > 0, "a number above 0")
 _nonnegative = _number(float, lambda v: v >= 0, "a number >= 0")
 _seconds = _number(float, lambda v: v > 0, "a duration above 0 s")
@@ -127,7 +146,15 @@ def cmd_kinematics_show(args) -> int:
 
     head = load_head(args.head)
     s = summarize(head, n_directions=args.directions)
-    print(json.dumps(s, indent=2) if args.json else summary_markdown(s))
+    if args.json:
+        try:
+            text = json.dumps(s, indent=2, allow_nan=False)
+        except ValueError:
+            raise ValueError(f"{args.head}: the summary holds a non-finite number (a size or position too large "
+                             f"to compute with); give the head's sizes and positions in metres") from None
+        print(text)
+    else:
+        print(summary_markdown(s))
     return 0
 
 
@@ -176,15 +203,26 @@ def _picture_path(text: str) -> Path:
     elif path.suffix.lower() != ".png":
         raise ValueError(f"--out {text}: a picture is a PNG file; give a path ending in .png (e.g. head.png), "
                          f"or an existing folder to write head.png into")
-    check_output(path.parent)
-    return path
+    return check_output_file(path, "--out", ".png")
+
+
+def _check_in_range(head, q_rad: np.ndarray, flag: str) -> None:
+    """Refuse joint angles (3,) radians outside the head's ranges, naming the joint and the flag."""
+    bad = np.flatnonzero((q_rad < head.lower - 1e-9) | (q_rad > head.upper + 1e-9))
+    if bad.size:
+        j = int(bad[0])
+        raise ValueError(f"{flag}: {JOINT_NAMES[j]} = {math.degrees(q_rad[j]):g} deg is outside its range "
+                         f"[{math.degrees(head.lower[j]):g}, {math.degrees(head.upper[j]):g}] deg; give E,P,C degrees "
+                         f"within the head's ranges")
 
 
 def cmd_kinematics_picture(args) -> int:
     from kinematics.picture import render_head
 
+    path = _picture_path(args.out)             # before the head is rendered: a refusal loses no work
     head = load_head(args.head)
-    path = _picture_path(args.out)
+    for q in args.posture or []:
+        _check_in_range(head, np.radians(q), "--posture")
     out = render_head(head, path, postures=np.radians(np.array(args.posture)) if args.posture else None)
     print(f"wrote {out}")
     return 0
@@ -197,7 +235,7 @@ def _design_seed(text: str) -> int:
     except ValueError:
         v = None
     if v is None or not 0 <= v < 2**32:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number from 0 to {2**32 - 1}")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 0 (at most {2**32 - 1}, numpy's seeds)")
     return v
 
 
@@ -258,7 +296,7 @@ def cmd_placement_map(args) -> int:
 
     if (args.body is None) != (args.joints is None):
         raise ValueError("--body and --joints go together: a labelled mesh and its joints JSON")
-    check_output(args.out)
+    check_folder(args.out, "placement map")
     body = load_body(args.body, args.joints) if args.body else make_body(args.stature)
     motions = ([load_bvh(p, body, scale=args.motion_scale, up=args.motion_up, allow_missing=args.allow_missing_joints)
                 for p in args.motion] if args.motion else default_motions(body))
@@ -289,20 +327,28 @@ def cmd_sim_record(args) -> int:
         if not 0.0 <= args.dim_to <= 1.0:
             raise ValueError(f"--dim-to {args.dim_to}: give the final light level as a fraction 0..1")
         scenario = replace(scenario, dim_to=args.dim_to)
-    for flag, v in (("--seed", args.seed), ("--scene-seed", args.scene_seed)):
-        if v is not None and v < 0:
-            raise ValueError(f"{flag} {v}: give a seed of 0 or more")
-    if not (np.isfinite(args.click_error) and 0.0 <= args.click_error <= 50.0):
-        raise ValueError(f"--click-error {args.click_error}: give the operator's click error in pixels, 0 to 50")
     check_new_recording(args.out)       # before the twin is built: a refusal loses no work
     twin = make_twin(args.head, args.mount, args.camera, ideal_imu=args.ideal_imu, ideal_camera=args.ideal_camera)
     try:
-        out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth,
-                     scene_seed=args.scene_seed, click_error_px=args.click_error)
+        with _seed_hint("--scene-seed or --seed"):
+            out = record(twin, scenario, args.out, seconds=args.seconds, seed=args.seed, depth=args.depth,
+                         scene_seed=args.scene_seed, click_error_px=args.click_error)
     finally:
         twin.close()
     print(f"recorded {args.scenario} (seed {args.seed}, scene seed {twin.scene_seed}) into {out}")
     return 0
+
+
+@contextlib.contextmanager
+def _seed_hint(options: str):
+    """A hidden start target's advice in the options of the command that runs (the library says
+    "another seed": sim run takes --seed, sim record also --scene-seed)."""
+    from runtime.twin.operator import TargetHidden
+
+    try:
+        yield
+    except TargetHidden as e:
+        raise TargetHidden(str(e).replace("use another seed", f"use another {options}")) from None
 
 
 def _check_limit(limit_deg_s: float, head_path) -> None:
@@ -330,6 +376,7 @@ def cmd_sim_run(args) -> int:
     from runtime.twin.scenarios import get_scenario
     from wvr.assemble import run_on_twin
 
+    check_folder(args.out, "sim run")          # before any file is read: a refusal loses no work
     scenario = get_scenario(args.scenario)
     _check_limit(args.limit, args.head)
     targets = [np.asarray(t, float) for t in (args.target or [])]
@@ -344,11 +391,12 @@ def cmd_sim_run(args) -> int:
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
                 method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
-    with output_folder(args.out) as out:    # checked before the twin starts, INCOMPLETE until the end
+    with output_folder(args.out, kind="sim run") as out:    # INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)
         try:
-            s = run_on_twin(twin, scenario, task, out, seconds=args.seconds, seed=args.seed, settings=settings,
-                            click_error_px=getattr(args, "click_error", 2.5))
+            with _seed_hint("--seed"):
+                s = run_on_twin(twin, scenario, task, out, seconds=args.seconds, seed=args.seed, settings=settings,
+                                click_error_px=getattr(args, "click_error", 2.5))
         finally:
             twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
@@ -360,6 +408,14 @@ def cmd_stabilise(args) -> int:
     from runtime.vision2d.stabilise import stabilise_sequence
 
     fovea = _size(args.fovea, "--fovea")
+    check_folder(args.out, "stabilise")
+    if args.imu:
+        from runtime.sequence import open_sequence
+
+        seq = open_sequence(args.seq)
+        if seq.imu is not None and len(seq.imu.t) == 0:
+            raise ValueError(f"{Path(args.seq) / 'imu.txt'}: holds no samples, so --imu has nothing to use; run "
+                             f"without --imu, or record the IMU")
     r = stabilise_sequence(args.seq, args.out, fovea=fovea, use_imu=args.imu)
     print(json.dumps(r.stats(), indent=1))
     print(f"wrote {Path(args.out) / 'rotations.tum'}, fovea/, report.md")
@@ -391,6 +447,7 @@ def cmd_track(args) -> int:
         raise ValueError("--init X,Y,W,H is required: the target's box in the first frame, pixels")
     from runtime.vision2d.track import track_sequence
 
+    check_folder(args.out, "track")
     r = track_sequence(args.seq, args.out, init=tuple(float(v) for v in args.init), method=args.method)
     print(json.dumps(r.stats(), indent=1))
     print(f"wrote {Path(args.out) / 'polygons.csv'}, annotated/, stats.json")
@@ -412,7 +469,7 @@ def cmd_slam(args) -> int:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
         check_output(Path(args.save_map).parent, "--save-map")
-    with output_folder(args.out) as out:    # checked before the run, INCOMPLETE until it ends
+    with output_folder(args.out, kind="slam") as out:    # checked before the run, INCOMPLETE until it ends
         r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, cfg=cfg, settings=settings,
                      save_map=args.save_map, map_path=args.map)
     print(f"{r.frames} frames ({r.skipped} skipped), {r.features} features in the map, {r.mean_matched:.1f} of "
@@ -461,6 +518,12 @@ def cmd_eval(args) -> int:
     if seq.groundtruth is None:
         raise ValueError(f"{args.seq}: no groundtruth.txt to evaluate against")
     est = read_trajectory(result / "trajectory.tum")
+    if len(seq.groundtruth) < 2:
+        raise ValueError(f"{Path(args.seq) / 'groundtruth.txt'}: holds {len(seq.groundtruth)} poses; the ground "
+                         f"truth needs at least two to evaluate against (re-record the sequence)")
+    if len(est) < 2:
+        raise ValueError(f"{result / 'trajectory.tum'}: holds {len(est)} poses, so there is nothing to evaluate "
+                         f"(the camera was never located, or the run stopped at once); run wvr slam again")
     e = trajectory_errors(est, seq.groundtruth)
     print(f"poses matched: {e.matched} of {len(est)}")
     if e.matched < MIN_COVERAGE * len(est):
@@ -528,14 +591,23 @@ def cmd_head(args) -> int:
     from runtime.drivers.rig import load_rig, open_servo_board
     from runtime.safety import EStop
 
-    cfg = load_rig(args.rig)
+    cfg = load_rig(args.rig, with_camera=False)        # bring-up needs the servos only
     estop = EStop(cfg.estop_file)
     if args.action == "stop":
-        estop.trip("stopped from the command line (wvr head stop)")
+        try:
+            estop.trip("stopped from the command line (wvr head stop)")
+        except OSError as e:
+            raise DriverError(f"the emergency stop is NOT latched: {cfg.estop_file} cannot be written "
+                              f"({e.strerror or e}); stop the head by its power switch, then fix safety.estop_file "
+                              f"in {args.rig}") from None
         print(f"emergency stop latched ({cfg.estop_file}); every run holds until wvr head --rig {args.rig} reset")
         return 0
     if args.action == "reset":
-        estop.reset()
+        try:
+            estop.reset()
+        except OSError as e:
+            raise DriverError(f"the emergency stop is still latched: {cfg.estop_file} cannot be removed "
+                              f"({e.strerror or e}); remove it by hand") from None
         print("emergency stop cleared")
         return 0
     head = cfg.head
@@ -580,17 +652,13 @@ def cmd_head(args) -> int:
 def cmd_run(args) -> int:
     import math
 
-    from runtime.apps.closed_loop import Task, load_targets, run_closed_loop
-    from runtime.apps.session import SessionRecorder
+    from runtime.apps.closed_loop import Task, load_targets
     from runtime.drivers.rig import load_rig
     from runtime.gaze import ControllerSettings
     from runtime.sequence import load_target
-    from wvr.assemble import make_rig
 
+    out = check_folder(args.out, "run")          # before the rig is read or opened: a refusal loses no work
     cfg = load_rig(args.rig)
-    out = Path(args.out)
-    if (out / "rgb.txt").exists():
-        raise ValueError(f"{out}: already holds a recording (rgb.txt); give a new --out folder")
     start_path = Path(args.start_target) if args.start_target else cfg.start_target
     start = load_target(start_path) if start_path is not None else None
     targets = [np.asarray(t, float) for t in (args.target or [])]
@@ -613,7 +681,23 @@ def cmd_run(args) -> int:
     if task.uses_slam and start is None:
         raise ValueError(f"task {task.kind} starts SLAM from the known target: give --start-target target.toml "
                          f"(or [start] target in {args.rig})")
-    out.mkdir(parents=True, exist_ok=True)
+    with output_folder(out, kind="run"):        # locked, INCOMPLETE until the session is written
+        try:
+            return _run_on_rig(args, cfg, out, task, start, settings)
+        except DriverError as e:
+            if not (out / "session.json").exists():
+                raise                           # the rig never started (a missing port): no folder left
+            # A fault ends the session, which is written whole up to it (session.json says so):
+            # the folder is complete; the error is still the command's result.
+            fault = e
+    raise fault
+
+
+def _run_on_rig(args, cfg, out: Path, task, start, settings) -> int:
+    from runtime.apps.closed_loop import run_closed_loop
+    from runtime.apps.session import SessionRecorder
+    from wvr.assemble import make_rig
+
     rig = make_rig(cfg)
     rec = SessionRecorder(out, cfg.camera, cfg.head, start, notes={"rig": str(Path(args.rig).resolve()), "task": task.kind})
     complete, reason, s = False, "", None
@@ -647,21 +731,23 @@ def cmd_run(args) -> int:
 def cmd_sim_hil(args) -> int:
     from runtime.twin.hil import HilSession
 
-    out = Path(args.out)
-    if (out / "rig.toml").exists() and not args.force:
-        raise ValueError(f"{out}: already holds a HIL session (rig.toml); give a new --out folder")
-    twin = make_twin(args.head, args.mount, args.camera)
-    twin.configure(args.scenario, seed=args.seed, seconds=args.seconds)
-    session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger, click_error_px=args.click_error)
+    # A finished session is reused only with --force (the folder's kind says what wrote it).
+    out = check_folder(args.out, "sim hil", reuse=args.force)
+    with output_folder(out, kind="sim hil", reuse=args.force):
+        twin = make_twin(args.head, args.mount, args.camera)
+        twin.configure(args.scenario, seed=args.seed, seconds=args.seconds)
+        session = HilSession(twin, out, imu=args.imu, wait_s=args.wait, linger_s=args.linger,
+                             click_error_px=args.click_error)
 
-    def ready():
-        print(f"HIL ready: run  wvr run --rig {out / 'rig.toml'} --task fixate --out RUN_DIR", flush=True)
-    session.ready = ready
-    try:
-        st = session.run(progress=not args.quiet)
-    finally:
-        session.close()
-        twin.close()
+        def ready():
+            print(f"HIL ready: run  wvr run --rig {out / 'rig.toml'} --task fixate --out RUN_DIR", flush=True)
+        session.ready = ready
+        try:
+            with _seed_hint("--seed"):
+                st = session.run(progress=not args.quiet)
+        finally:
+            session.close()
+            twin.close()
     print(f"served {st.frames} frames, {st.target_commands} target commands, {st.stalls} stalls; "
           f"truth in {out / 'groundtruth.txt'}")
     return 0
@@ -673,6 +759,7 @@ def cmd_calibrate(args) -> int:
 
         if not args.images or not args.board:
             raise ValueError("wvr calibrate camera needs --images DIR and --board chessboard:COLSxROWS:SQUARE_M")
+        check_output_file(args.out, "--out", ".toml")      # before the images are read: a refusal loses no work
         res = calibrate_camera(args.images, args.board, args.model, args.out)
         print(f"{res.images_used} of {res.images_total} images used; RMS reprojection error {res.rms_px:.3f} px; "
               f"wrote {res.path}")
@@ -790,7 +877,7 @@ def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, 
     duration, seed, and the head, mount and camera files. ``when`` prefixes their help."""
     p.add_argument("--scenario", required=required, choices=sorted(scenarios), help=f"{when}the twin scenario")
     p.add_argument("--seconds", type=_seconds, help=f"{when}duration, s, above 0 (default: the scenario's)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=_nonneg_int, default=0,
                    help=f"{when}run seed: motion variation and sensor noise, and the place (textures, layout)")
     p.add_argument("--head", help=f"{when}head.toml (default: the reference head)")
     p.add_argument("--mount", help=f"{when}mount.toml from wvr placement map (default: on the right shoulder)")
@@ -813,7 +900,8 @@ def build_parser() -> argparse.ArgumentParser:
     show = ksub.add_parser("show", help="print the chain, masses, radii, torques and gaze coverage of a head")
     show.add_argument("head", help="head.toml, or 'reference'")
     show.add_argument("--json", action="store_true", help="print JSON instead of Markdown")
-    show.add_argument("--directions", type=_positive_int, default=2000, help="gaze directions sampled for coverage")
+    show.add_argument("--directions", type=_directions, default=2000,
+                      help="gaze directions sampled for coverage (default 2000, at most 200000)")
     show.set_defaults(func=cmd_kinematics_show)
     mj = ksub.add_parser("mjcf", help="write the head's MJCF model to standard output")
     mj.add_argument("head", help="head.toml, or 'reference'")
@@ -889,14 +977,14 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dim-to", type=float, help="dim the lights linearly to this fraction by the end (e.g. 0.3)")
     rec.add_argument("--depth", action="store_true",
                      help="also write the true depth of every frame (depth.txt, depth/<t>.png, TUM RGB-D)")
-    rec.add_argument("--scene-seed", type=int, metavar="S",
+    rec.add_argument("--scene-seed", type=_nonneg_int, metavar="S",
                      help="fix the place (textures, object layout) apart from --seed (default: --seed); recordings "
                           "of scenarios in one place with one scene seed show the same place")
     rec.add_argument("--ideal-imu", action="store_true",
                      help="an ideal IMU (white noise only) instead of a BMI088's biases, scale errors and clock offset")
     rec.add_argument("--ideal-camera", action="store_true",
                      help="clean renders: no motion blur, auto-exposure or sensor noise")
-    rec.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+    rec.add_argument("--click-error", type=_click_error, default=2.5, metavar="PX",
                      help="how far off the operator clicks the target's corners in target.toml, pixels "
                           "(default 2.5; 0: the exact projection)")
     _twin_options(rec, SCENARIOS)
@@ -916,7 +1004,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--method", choices=METHODS, default="hyperplane", help="track: the 2D tracker")
     run.add_argument("--recentre", type=_nonnegative, default=0.0, metavar="PER_S",
                      help="stabilise: Path A's visual outer loop, 1/s: the held attitude turns towards where the software fovea wants to look (default 0: the IMU alone)")
-    run.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+    run.add_argument("--click-error", type=_click_error, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
     run.add_argument("--out", required=True, help="output directory")
@@ -929,7 +1017,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the IMU stream rig.toml uses (both are served)")
     hil.add_argument("--wait", type=_positive, default=5.0, help="seconds of wall time the world waits for each command")
     hil.add_argument("--linger", type=_nonnegative, default=8.0, help="seconds the board stays up after the run (safe stop)")
-    hil.add_argument("--click-error", type=float, default=2.5, metavar="PX",
+    hil.add_argument("--click-error", type=_click_error, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks target.toml's corners (default 2.5)")
     hil.add_argument("--force", action="store_true", help="reuse an --out folder that holds a HIL session")
     hil.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics import reference_head, save_head
 from kinematics.camera import default_camera, save_camera
@@ -419,8 +419,8 @@ def run_demo(out: Path, stages=None) -> DemoResult:
     sections = ["# wvr demo", "",
                 "Every stage of the pipeline that exists, in order, with small budgets "
                 "(Mayol, Davison, Tordoff, Murray: *Applying Active Vision and SLAM to Wearables*).", ""]
-    with output_folder(out) as out:
-        for folder, title, fn in tqdm(STAGES if stages is None else stages, desc="wvr demo", unit="stage"):
+    with output_folder(out, kind="demo") as out:
+        for folder, title, fn in progress_bar(STAGES if stages is None else stages, desc="wvr demo", unit="stage"):
             d = out / folder
             if d.exists():          # the demo owns its folders: every run starts afresh
                 shutil.rmtree(d)

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics import JOINT_NAMES
 from kinematics.tomlfile import read_toml
@@ -457,7 +457,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     obs = robot.reset()
     loop.start(obs)
     interrupted, fault = None, None
-    bar = tqdm(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
+    bar = progress_bar(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
     ctrl_c = _CtrlC()
     try:

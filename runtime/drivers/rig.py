@@ -116,7 +116,7 @@ class RigConfig:
     port: str
     channels: tuple[int, int, int]                  # Maestro channels, or Dynamixel IDs
     calibration: tuple                              # ServoCalibration (Maestro) or TickCalibration (Dynamixel) x 3
-    camera: CameraIntrinsics
+    camera: CameraIntrinsics | None                 # None when loaded without the camera (bring-up)
     camera_source: object
     baud: int = 115200
     device: int | None = None
@@ -185,8 +185,10 @@ def _vector(path, d, key, where, n=3, default=None):
     return a
 
 
-def load_rig(path: str | Path) -> RigConfig:
-    """Read and check rig.toml (see the module docstring)."""
+def load_rig(path: str | Path, with_camera: bool = True) -> RigConfig:
+    """Read and check rig.toml (see the module docstring). with_camera=False reads the servos
+    and the safety settings only (the head's bring-up): no [camera] table is needed, and the
+    config's camera is None."""
     path = Path(path)
     d = read_toml(path, RigFileError, "a rig.toml (see the README's rig section)")
     _check_keys(path, d, "", "")
@@ -195,7 +197,7 @@ def load_rig(path: str | Path) -> RigConfig:
     if not isinstance(head_ref, str):
         _fail(path, "head", f"{head_ref!r} must be \"reference\" or a head.toml path")
     head = reference_head() if head_ref == "reference" else load_head(base / head_ref)
-    for t in ("servo", "camera"):
+    for t in ("servo", "camera") if with_camera else ("servo",):
         if t not in d or not isinstance(d[t], dict):
             _fail(path, f"[{t}]", "missing table; add it (see the README's rig section)")
     sv = d["servo"]
@@ -272,15 +274,17 @@ def load_rig(path: str | Path) -> RigConfig:
     if np.any(home < head.lower) or np.any(home > head.upper):
         _fail(path, "servo.home_deg", f"{np.degrees(home).round(1).tolist()} lies outside the head's joint ranges")
 
-    cd = d["camera"]
-    _check_keys(path, cd, "camera", "camera")
-    if "source" not in cd:
-        _fail(path, "camera.source", "missing; give a V4L2 device index, a device path, a video file or an image pattern")
-    if "camera_toml" not in cd or not isinstance(cd["camera_toml"], str):
-        _fail(path, "camera.camera_toml", "missing; give the camera.toml with the intrinsics (wvr calibrate camera writes one)")
-    camera = load_camera(base / cd["camera_toml"])
-    fps = _number(path, cd, "fps", "camera", 30.0)
-    cam_timeout = _number(path, cd, "timeout_s", "camera", 1.0)
+    camera, cd, fps, cam_timeout = None, {"source": None}, 30.0, 1.0
+    if with_camera:
+        cd = d["camera"]
+        _check_keys(path, cd, "camera", "camera")
+        if "source" not in cd:
+            _fail(path, "camera.source", "missing; give a V4L2 device index, a device path, a video file or an image pattern")
+        if "camera_toml" not in cd or not isinstance(cd["camera_toml"], str):
+            _fail(path, "camera.camera_toml", "missing; give the camera.toml with the intrinsics (wvr calibrate camera writes one)")
+        camera = load_camera(base / cd["camera_toml"])
+        fps = _number(path, cd, "fps", "camera", 30.0)
+        cam_timeout = _number(path, cd, "timeout_s", "camera", 1.0)
 
     im = d.get("imu", {"driver": "none"})
     _check_keys(path, im, "imu", "imu")

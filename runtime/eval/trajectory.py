@@ -40,6 +40,11 @@ ALIGNMENTS = ("none", "se3", "sim3")
 
 def associate(est: Trajectory, gt: Trajectory, max_dt: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (i_est, i_gt) of poses within ``max_dt`` seconds of each other (nearest)."""
+    if len(gt.t) == 0 or len(est.t) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    if len(gt.t) == 1:
+        ok = np.abs(gt.t[0] - est.t) <= max_dt
+        return np.flatnonzero(ok), np.zeros(int(ok.sum()), int)
     j = np.clip(np.searchsorted(gt.t, est.t), 1, len(gt.t) - 1)
     j = np.where(np.abs(gt.t[j - 1] - est.t) < np.abs(gt.t[j] - est.t), j - 1, j)
     ok = np.abs(gt.t[j] - est.t) <= max_dt
@@ -64,6 +69,10 @@ def align_se3(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def trajectory_errors(est: Trajectory, gt: Trajectory, rpe_delta_s: float = 1.0) -> TrajectoryErrors:
+    for traj, what in ((est, "the estimated trajectory"), (gt, "the ground truth")):
+        if len(traj.t) < 2:
+            raise ValueError(f"{what} has {len(traj.t)} pose{'' if len(traj.t) == 1 else 's'}; at least two are "
+                             f"needed to compare trajectories")
     ie, ig = associate(est, gt)
     if len(ie) < 2:
         raise ValueError("fewer than two estimated poses have a ground-truth pose within 5 ms; "

@@ -38,12 +38,12 @@ folder) and :mod:`.writer` (recording one). Import the names from ``runtime.sequ
 from .reader import Sequence, open_sequence
 from .textfiles import (load_target, read_imu, read_joints, read_trajectory, save_target, write_imu, write_joints,
                         write_trajectory)
-from .types import (DEPTH_SCALE, IMU_COLUMNS, JOINT_COLUMNS, MIN_TARGET_POINTS, QUATERNION_NORM_TOL, ROTATION_TOL,
+from .types import (DEPTH_SCALE, IMU_COLUMNS, JOINT_COLUMNS, MIN_TARGET_POINTS, QUATERNION_NORM_TOL, RECORDING, ROTATION_TOL,
                     TRAJECTORY_COLUMNS, Frame, ImuLog, JointLog, SequenceError, Target, Trajectory)
 from .writer import SequenceWriter, check_new_recording
 
 __all__ = [
-    "DEPTH_SCALE", "IMU_COLUMNS", "JOINT_COLUMNS", "MIN_TARGET_POINTS", "QUATERNION_NORM_TOL", "ROTATION_TOL",
+    "DEPTH_SCALE", "IMU_COLUMNS", "JOINT_COLUMNS", "MIN_TARGET_POINTS", "QUATERNION_NORM_TOL", "RECORDING", "ROTATION_TOL",
     "TRAJECTORY_COLUMNS", "Frame", "ImuLog", "JointLog", "Sequence", "SequenceError", "SequenceWriter", "Target",
     "Trajectory", "check_new_recording", "load_target", "open_sequence", "read_imu", "read_joints",
     "read_trajectory", "save_target", "write_imu", "write_joints", "write_trajectory",

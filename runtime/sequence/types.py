@@ -22,6 +22,9 @@ QUATERNION_NORM_TOL = 1e-3
 #: A rotation matrix given to a writer must be orthonormal to this (max abs of R^T R - I).
 ROTATION_TOL = 1e-6
 #: TUM RGB-D: a depth PNG holds metres x 5000 (0.2 mm steps, up to 13.1 m).
+#: The kind (kinematics.outdir) of a folder a SequenceWriter writes on its own (wvr sim record).
+RECORDING = "sim record"
+
 DEPTH_SCALE = 5000.0
 #: target.toml needs at least this many points (enough for a unique camera pose from a plane).
 MIN_TARGET_POINTS = 4

@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 
 from kinematics.camera import CameraIntrinsics, save_camera
-from kinematics.outdir import OutputFolderError, check_output, output_folder
+from kinematics.outdir import OutputFolderError, check_folder, output_folder, writing
 
 from .textfiles import (_FMT_IMAGE_NAME, _FMT_QUAT, _FMT_TIME, _FMT_VALUE, _IMU_UNITS, _format_row, _header_lines,
                         save_target)
-from .types import (DEPTH_SCALE, IMU_COLUMNS, JOINT_COLUMNS, TRAJECTORY_COLUMNS, SequenceError, Target,
+from .types import (DEPTH_SCALE, IMU_COLUMNS, JOINT_COLUMNS, RECORDING, TRAJECTORY_COLUMNS, SequenceError, Target,
                     _as_columns, _rotations_from_T)
 
 
@@ -27,10 +27,10 @@ def check_new_recording(root: str | Path) -> Path:
     be created or written (kinematics.outdir.check_output), or that already holds a sequence."""
     root = Path(root)
     try:
-        check_output(root)
+        check_folder(root, RECORDING)      # another command's folder, a finished recording, a live writer
     except OutputFolderError as e:
         raise SequenceError(str(e)) from None
-    if (root / "rgb.txt").exists():
+    if (root / "rgb.txt").exists() and not (root / "INCOMPLETE").exists():
         raise SequenceError(f"{root / 'rgb.txt'}: already exists; record into a new folder, or delete {root} first")
     return root
 
@@ -58,12 +58,12 @@ class SequenceWriter:
                  overwrite: bool = False):
         self.root = Path(root)
         self.camera = camera
-        if not overwrite:
+        if not overwrite and not writing(self.root):     # a command's own folder (a session) it judged
             check_new_recording(self.root)
         self._files: dict[str, TextIO] = {}
         self._closed = True
         self._folder = ExitStack()
-        self._folder.enter_context(output_folder(self.root))
+        self._folder.enter_context(output_folder(self.root, kind=RECORDING, reuse=overwrite))
         self._last_t: dict[str, float] = {}
         self._last_name: str | None = None  # the previous frame's image, rgb/<t>.png
         try:

@@ -115,6 +115,26 @@ DEFAULT_CONFIG = SlamConfig()
 
 
 @dataclass(frozen=True)
+class RansacSettings:
+    """1-point RANSAC's settings (Civera, Grasa, Davison, Montiel 2010; ransac.one_point_ransac).
+
+    threshold_px : a low-innovation inlier lies within this of a hypothesis' prediction, px.
+    max_hypotheses : hypotheses tried at most. confidence : the chance of drawing an all-inlier
+    hypothesis at which the trials stop. rescue_chi2 : a high-innovation match is rescued if its
+    ``nu^T S^-1 nu`` after the first update is below this (chi-square, 2 dof)."""
+
+    threshold_px: float = 2.0
+    max_hypotheses: int = 60
+    confidence: float = 0.99
+    rescue_chi2: float = 4.61
+
+    def __post_init__(self):
+        _check_numbers(self)
+        if not 0.0 < self.confidence < 1.0:
+            raise ValueError(f"RansacSettings.confidence = {self.confidence}: give a probability between 0 and 1")
+
+
+@dataclass(frozen=True)
 class MapSettings:
     """Map management, matching, start-up and re-localisation (paper, sections 4.1 to 4.3)."""
 
@@ -221,6 +241,13 @@ class MapSettings:
     imu_max_gap_s: float = 0.05          # a longer gap between samples falls back to vision only
     imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes
     imu_max_accel_m_s2: float = 160.0
+
+    @property
+    def ransac(self) -> RansacSettings:
+        """The 1-point RANSAC's settings (ransac_threshold_px, ransac_max_hypotheses,
+        ransac_confidence, rescue_chi2) as one object."""
+        return RansacSettings(self.ransac_threshold_px, self.ransac_max_hypotheses, self.ransac_confidence,
+                              self.rescue_chi2)
 
     def with_measure(self, n: int) -> "MapSettings":
         """These settings measuring at most ``n`` features a frame, adding new ones below the

@@ -22,7 +22,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics
 
 from .features import FEATURE_DIMS
-from .state import CAMERA_DIM, State
+from .state import State
 from .templates import MapFeature
 
 FORMAT = "wvr-slam-map"
@@ -52,18 +52,11 @@ class SavedMap:
         """A filter state of this map with a camera block that knows nothing yet: at the last
         saved pose, at rest, with a covariance too wide to search (the session starts lost and
         re-localises), uncorrelated with the map."""
+        from .prior import UNKNOWN_POSE_VARIANCES, UNKNOWN_SIGMA_V, UNKNOWN_SIGMA_W, camera_prior
         from .quaternion import quat_from_rotation
 
-        x_v = np.zeros(cam_dim)
-        x_v[0:3] = self.T_world_cam[:3, 3]
-        x_v[3:7] = quat_from_rotation(self.T_world_cam[:3, :3])
-        P_v = np.diag(np.r_[np.full(3, 1.0), np.full(4, 0.25), np.full(3, 0.3**2), np.full(3, 0.5**2),
-                            np.full(cam_dim - 13, 0.0)])
-        if cam_dim > CAMERA_DIM:
-            P_v[13:16, 13:16] = np.eye(3) * cfg.gyro_bias_sigma0**2
-            P_v[16:19, 16:19] = np.eye(3) * cfg.accel_bias_sigma0**2
-        if cam_dim > 19:
-            x_v[19], P_v[19, 19] = cfg.time_offset0, cfg.time_offset_sigma0**2
+        x_v, P_v = camera_prior(cam_dim, self.T_world_cam[:3, 3], quat_from_rotation(self.T_world_cam[:3, :3]),
+                                np.diag(UNKNOWN_POSE_VARIANCES), UNKNOWN_SIGMA_V, UNKNOWN_SIGMA_W, cfg)
         n = cam_dim + len(self.y)
         P = np.zeros((n, n))
         P[:cam_dim, :cam_dim] = P_v

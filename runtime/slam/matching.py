@@ -36,6 +36,7 @@ from kinematics.camera import CameraIntrinsics, lens_kernel_args
 
 from .kernels import compiled_kernel
 from .quaternion import quat_to_rotation
+from .search import parabola_offset
 from .templates import MapFeature, plane_corners_kernel
 
 #: A window flatter than this grey-level variance cannot hold a match (ZNCC is noise there).
@@ -353,7 +354,7 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
     return grid
 
 
-@compiled_kernel()
+@compiled_kernel(parabola_offset)
 def _best_in_grid(grid):
     """The least score in ``grid`` (nv, nu) (inf: not a candidate) with a parabolic sub-pixel
     fit through the neighbours in each direction when both are candidates: (i + su, j + sv,
@@ -368,9 +369,9 @@ def _best_in_grid(grid):
         return np.nan, np.nan, 2.0
     su = sv = 0.0
     if 0 < bi < nu - 1 and np.isfinite(grid[bj, bi - 1]) and np.isfinite(grid[bj, bi + 1]):
-        su = _parabola(grid[bj, bi - 1], best, grid[bj, bi + 1])
+        su = parabola_offset(grid[bj, bi - 1], best, grid[bj, bi + 1])
     if 0 < bj < nv - 1 and np.isfinite(grid[bj - 1, bi]) and np.isfinite(grid[bj + 1, bi]):
-        sv = _parabola(grid[bj - 1, bi], best, grid[bj + 1, bi])
+        sv = parabola_offset(grid[bj - 1, bi], best, grid[bj + 1, bi])
     return bi + su, bj + sv, best
 
 
@@ -492,12 +493,6 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
         if dp[4] * dp[4] + dp[5] * dp[5] < tol * tol and abs(dp[0]) + abs(dp[1]) + abs(dp[2]) + abs(dp[3]) < tol:
             break
     return cu, cv, True
-
-
-@compiled_kernel()
-def _parabola(a, b, c):
-    d = a - 2 * b + c
-    return 0.0 if abs(d) < 1e-12 else min(max(0.5 * (a - c) / d, -0.5), 0.5)
 
 
 @compiled_kernel(_homography, _warp)

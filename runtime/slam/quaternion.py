@@ -8,8 +8,8 @@ with respect to ``q`` treats its four components as independent variables of tha
 norm is kept at 1 by an explicit renormalisation with its own Jacobian
 (:func:`normalise_quaternion_kernel`).
 
-Conversions that are not on a compiled path (rotation vectors, matrices, the TUM x y z w order)
-go through scipy's ``Rotation``.
+Only the compiled kernels and the thin wrappers the filter calls live here; every other rotation
+conversion (rotation vectors, matrices, the TUM x y z w order) is kinematics.transforms'.
 """
 
 from __future__ import annotations
@@ -128,19 +128,9 @@ def quat_left_matrix(q) -> np.ndarray:
     return quat_left_kernel(float(w), float(x), float(y), float(z))
 
 
-def quat_right_matrix(p) -> np.ndarray:
-    w, x, y, z = p
-    return quat_right_kernel(float(w), float(x), float(y), float(z))
-
-
 def quat_multiply(q, p) -> np.ndarray:
     """Hamilton product ``q * p`` of two (4,) quaternions, w x y z."""
     return quat_left_matrix(q) @ np.asarray(p, dtype=float)
-
-
-def quat_conjugate(q) -> np.ndarray:
-    q = np.asarray(q, dtype=float)
-    return np.array([q[0], -q[1], -q[2], -q[3]])
 
 
 def quat_to_rotation(q) -> np.ndarray:
@@ -163,12 +153,6 @@ def rotvec_to_quat_jacobian(theta) -> tuple[np.ndarray, np.ndarray]:
 def rotvec_to_quat(theta) -> np.ndarray:
     """Rotation vector (rad) to unit quaternion, w x y z."""
     return rotvec_to_quat_jacobian(theta)[0]
-
-
-def quat_to_rotvec(q) -> np.ndarray:
-    """Unit quaternion (w x y z) to rotation vector (rad), angle in [0, pi]."""
-    q = np.asarray(q, dtype=float)
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_rotvec()
 
 
 def quat_from_rotation(R) -> np.ndarray:

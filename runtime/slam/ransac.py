@@ -39,6 +39,7 @@ from .filter import FrameUpdate, gather_jacobian, innovation_nis
 from .kernels import compiled_kernel
 from .measurement import Prediction, h_feature_kernel
 from .quaternion import rotation_derivatives_kernel, rotation_kernel
+from .config import RansacSettings
 from .state import POSE_DIM, SlamNumericalError, State
 
 
@@ -130,13 +131,13 @@ def _hypotheses_kernel(x, P, kinds, starts, anchors, dims, ks, z, uv0, H_c, H_f,
 
 
 def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraIntrinsics, R_pix,
-                     pred: Prediction, S: np.ndarray, threshold_px: float, max_hypotheses: int,
-                     confidence: float, rescue_chi2: float, rng: np.random.Generator,
+                     pred: Prediction, S: np.ndarray, settings: RansacSettings, rng: np.random.Generator,
                      r_scale: np.ndarray | None = None, votes: np.ndarray | None = None,
                      accept: Callable[[FrameUpdate], bool] | None = None) -> RansacResult:
     """Select the inliers among the matches ``z`` (m, 2) px of the distinct features ``ks`` and
     update the state with them, in place (the three steps of the module docstring).
 
+    ``settings`` : the hypotheses' threshold, number and confidence, and the rescue gate.
     ``pred``, ``S`` : the features' predictions and innovation covariances at the prior (the
     ones the search used). ``r_scale`` (m,) or (m, 2, 2) : each measurement's noise as a multiple
     of ``R_pix`` (filter.measurement_noise; default 1). ``votes`` (m,) : what each match's agreement counts for in choosing
@@ -160,8 +161,8 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
     low, tried = _hypotheses_kernel(state.x, state.P, state.kinds, state.starts, state.anchors, FEATURE_DIMS, ks,
                                     np.ascontiguousarray(z, float), np.ascontiguousarray(pred.uv),
                                     np.ascontiguousarray(pred.H_c), np.ascontiguousarray(pred.H_f),
-                                    np.ascontiguousarray(S), order, float(threshold_px), int(max_hypotheses),
-                                    float(confidence), votes, model, lens)
+                                    np.ascontiguousarray(S), order, float(settings.threshold_px),
+                                    int(settings.max_hypotheses), float(settings.confidence), votes, model, lens)
     if m == 1:
         low[:] = True                              # one match inside its own ellipse: nothing to vote
     used = np.zeros(m, bool)
@@ -181,7 +182,7 @@ def one_point_ransac(state: State, ks: np.ndarray, z: np.ndarray, cam: CameraInt
         nu = z[rest] - p2.uv
         ok = p2.valid & np.isfinite(S2).all(axis=(1, 2))
         d2 = np.where(ok, innovation_nis(np.ascontiguousarray(nu), S2), np.inf)
-        good = ok & (d2 < rescue_chi2)
+        good = ok & (d2 < settings.rescue_chi2)
         if good.any():
             sel = rest[good]
             sub = p2.take(good)

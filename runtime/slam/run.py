@@ -11,7 +11,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.camera import CameraIntrinsics, undistort
 
@@ -266,7 +266,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
     if video:
         (out / "video").mkdir(exist_ok=True)
-    bar = tqdm(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
+    bar = progress_bar(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
     for i in range(i0, n):
         if i > i0:
             _, f = next(frames)
@@ -274,17 +274,17 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             if f.image is None:
                 slam.skip(f.t, f.problem or "unreadable")
                 skipped += 1
-                tqdm.write(f"slam: frame {i} ({f.path.name}, t = {f.t:.3f} s) skipped: {f.problem or 'unreadable'}")
+                progress_bar.write(f"slam: frame {i} ({f.path.name}, t = {f.t:.3f} s) skipped: {f.problem or 'unreadable'}")
             else:
                 prev_lost = slam.lost
                 st = slam.process(f.image, f.t)
                 if st.lost and not prev_lost:
-                    tqdm.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
+                    progress_bar.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
                                f"{slam.settings.lost_after} frames; re-localising against the map")
                 if prev_lost and not st.lost:
-                    tqdm.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
+                    progress_bar.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
         for msg in slam.messages[said:]:
-            tqdm.write(msg)
+            progress_bar.write(msg)
         said = len(slam.messages)
         T = slam.T_world_cam()
         if np.isfinite(T).all():

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .state import compiled_kernel
+from .kernels import compiled_kernel
 
 TEMPLATE_SIZE = 15          # pixels, as in MonoSLAM
 HALF = TEMPLATE_SIZE // 2
@@ -55,8 +55,10 @@ def extract_template(image: np.ndarray, uv, size: int = TEMPLATE_SIZE) -> np.nda
 
 
 @compiled_kernel()
-def _parabola(a: float, b: float, c: float) -> float:
-    """Offset of the extremum of a parabola through (-1, a), (0, b), (1, c), clamped to +-0.5."""
+def parabola_offset(a: float, b: float, c: float) -> float:
+    """Offset of the extremum of a parabola through (-1, a), (0, b), (1, c), clamped to +-0.5:
+    the sub-pixel step of a best score ``b`` between its neighbours' ``a`` and ``c``. The one
+    definition, for this search and the compiled ZNCC search (matching.py)."""
     d = a - 2 * b + c
     return 0.0 if abs(d) < 1e-12 else min(max(0.5 * (a - c) / d, -0.5), 0.5)
 
@@ -98,7 +100,7 @@ def search(image: np.ndarray, template: np.ndarray, uv_pred: np.ndarray, S: np.n
     return Match(uv, best, best <= max_score)
 
 
-@compiled_kernel()
+@compiled_kernel(parabola_offset)
 def _best_in_ellipse(ncc, du0, dv0, iaa, iab, ibb, n2):
     """Least score ``2 (1 - ncc)`` over the window positions inside the ellipse
     ``(p - uv)^T S^-1 (p - uv) <= n2`` (``S^-1 = [[iaa, iab], [iab, ibb]]``; position (i, j) of
@@ -124,7 +126,7 @@ def _best_in_ellipse(ncc, du0, dv0, iaa, iab, ibb, n2):
 
     su = sv = 0.0
     if inside(bi - 1, bj) and inside(bi + 1, bj):
-        su = _parabola(2.0 * (1.0 - ncc[bj, bi - 1]), best, 2.0 * (1.0 - ncc[bj, bi + 1]))
+        su = parabola_offset(2.0 * (1.0 - ncc[bj, bi - 1]), best, 2.0 * (1.0 - ncc[bj, bi + 1]))
     if inside(bi, bj - 1) and inside(bi, bj + 1):
-        sv = _parabola(2.0 * (1.0 - ncc[bj - 1, bi]), best, 2.0 * (1.0 - ncc[bj + 1, bi]))
+        sv = parabola_offset(2.0 * (1.0 - ncc[bj - 1, bi]), best, 2.0 * (1.0 - ncc[bj + 1, bi]))
     return bi, bj, best, su, sv

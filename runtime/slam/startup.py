@@ -33,7 +33,8 @@ from kinematics.camera import CameraIntrinsics, in_image, project, project_jacob
 from kinematics.transforms import rotation_angle, skew
 
 from ..sequence import Target
-from .quaternion import dq_dtheta_right, quat_from_rotation
+from .prior import camera_prior, pose_covariance
+from .quaternion import quat_from_rotation
 
 
 class SlamStartError(ValueError):
@@ -68,16 +69,7 @@ class PoseHypothesis:
         from ``cov`` (rotation mapped by dq/dtheta), velocities with the given standard
         deviations, any further entries (bias states) left zero for the caller."""
         q = quat_from_rotation(self.R_world_cam)
-        x_v = np.zeros(cam_dim)
-        x_v[0:3], x_v[3:7] = self.r, q
-        G = np.zeros((7, 6))
-        G[0:3, 3:6] = np.eye(3)
-        G[3:7, 0:3] = dq_dtheta_right(q)
-        P = np.zeros((cam_dim, cam_dim))
-        P[:7, :7] = G @ self.cov @ G.T
-        P[7:10, 7:10] = np.eye(3) * v_sigma**2
-        P[10:13, 10:13] = np.eye(3) * w_sigma**2
-        return x_v, P
+        return camera_prior(cam_dim, self.r, q, pose_covariance(q, self.cov), v_sigma, w_sigma)
 
 
 def refine_clicks(grey: np.ndarray, target: Target, search_px: float) -> RefinedTarget:

@@ -1,5 +1,6 @@
-"""The filter's state: its layout (written once, here), the per-feature offset table, and the
-covariance guard.
+"""The filter's state: the one door through which the filter's mean and covariance are written
+(predictions, updates, features added, removed or converted, the camera restarted, trials
+rolled back), over the layout of layout.py, and the covariance guard.
 
 State vector (SI units)
 -----------------------
@@ -42,53 +43,20 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from .features import FEATURE_DIMS, FEATURE_NAMES
 from .kernels import compiled_kernel
+from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, CAMERA_NAMES,
+                     FEATURE_DIMS, FEATURE_NAMES, NOISE_DIM, POSE_DIM, Q_SLICE, R_SLICE, TD_INDEX, V_SLICE, W_SLICE,
+                     check_camera_dim, feature_starts, state_size)
 
-# ---------------------------------------------------------------------------------------------
-# Layout
-# ---------------------------------------------------------------------------------------------
-
-CAMERA_DIM = 13          #: the MonoSLAM camera block
-CAMERA_DIM_BIASED = 19   #: with gyro and accelerometer bias states
-CAMERA_DIM_TIMED = 20    #: and the IMU's clock offset t_d (s)
-POSE_DIM = 7             #: r and q: the part of the camera block a measurement sees
-NOISE_DIM = 6            #: the constant-velocity impulse n = (V, Omega) = dt (a, alpha)
-
-R_SLICE = slice(0, 3)
-Q_SLICE = slice(3, 7)
-V_SLICE = slice(7, 10)
-W_SLICE = slice(10, 13)
-BG_SLICE = slice(13, 16)
-BA_SLICE = slice(16, 19)
-TD_INDEX = 19            #: t_d: an IMU sample stamped t was taken at camera time t - t_d
-
-_CAMERA_NAMES = (("r", R_SLICE), ("q", Q_SLICE), ("v", V_SLICE), ("w", W_SLICE), ("b_g", BG_SLICE),
-                 ("b_a", BA_SLICE), ("t_d", slice(TD_INDEX, TD_INDEX + 1)))
+__all__ = ["BA_SLICE", "BG_SLICE", "CAMERA_DIM", "CAMERA_DIM_BIASED", "CAMERA_DIM_TIMED", "NOISE_DIM", "POSE_DIM",
+           "Q_SLICE", "R_SLICE", "TD_INDEX", "V_SLICE", "W_SLICE", "SlamNumericalError", "State", "StateSnapshot",
+           "check_covariance", "check_mean", "feature_starts", "mirror_upper", "state_size"]
 
 
 class SlamNumericalError(FloatingPointError):
     """The filter would put NaN/Inf into the state, or the covariance stopped being symmetric
     positive semi-definite. The message names the step and the problem; the state is left as it
     was before the failing step."""
-
-
-def _check_camera_dim(cam_dim: int) -> int:
-    if cam_dim not in (CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED):
-        raise ValueError(f"the camera block has {CAMERA_DIM} numbers, {CAMERA_DIM_BIASED} with IMU biases or "
-                         f"{CAMERA_DIM_TIMED} with the IMU's clock offset as well; got {cam_dim}")
-    return int(cam_dim)
-
-
-def feature_starts(cam_dim: int, kinds: np.ndarray) -> np.ndarray:
-    """(N,) int: where each feature begins in the state vector."""
-    dims = FEATURE_DIMS[np.asarray(kinds, np.intp)]
-    return (cam_dim + np.concatenate([[0], np.cumsum(dims)[:-1]])).astype(np.intp) if len(dims) else \
-        np.zeros(0, np.intp)
-
-
-def state_size(cam_dim: int, kinds) -> int:
-    return int(cam_dim + FEATURE_DIMS[np.asarray(kinds, np.intp)].sum())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -258,7 +226,7 @@ class State:
     t_ref: float | None = None
 
     def __post_init__(self):
-        self.cam_dim = _check_camera_dim(self.cam_dim)
+        self.cam_dim = check_camera_dim(self.cam_dim)
         self.x = np.array(self.x, dtype=float).reshape(-1)
         self.P = np.ascontiguousarray(np.array(self.P, dtype=float))
         self.kinds = np.array(self.kinds, dtype=np.intp).reshape(-1)
@@ -357,7 +325,7 @@ class State:
 
     def describe(self, i: int) -> str:
         """What state index ``i`` is, for error messages."""
-        for name, sl in _CAMERA_NAMES:
+        for name, sl in CAMERA_NAMES:
             if sl.start <= i < min(sl.stop, self.cam_dim):
                 return f"camera {name}"
         k = int(np.searchsorted(self.starts, i, side="right")) - 1
@@ -501,7 +469,65 @@ class State:
         self.x, self.P, self.kinds, self.starts = x, P, kinds, starts_new
         self.anchors = self.anchors[kept]
 
+    # -- trials and the camera's restart --
+    def snapshot(self, camera_only: bool = False) -> "StateSnapshot":
+        """What :meth:`restore` puts back: the mean and the whole covariance, or (``camera_only``)
+        the mean and the camera block's rows of ``P``, all that a prediction or a growth of the
+        camera's noise changes. The layout must not change in between (no feature added,
+        removed or converted)."""
+        if camera_only:
+            return StateSnapshot(self.x.copy(), self.P[:self.cam_dim].copy(), True, self.n)
+        return StateSnapshot(self.x.copy(), self.P.copy(), False, self.n)
+
+    def restore(self, snap: "StateSnapshot") -> None:
+        """Put back a :meth:`snapshot`: the mean, and the covariance (the camera rows, written
+        with their transposes as the columns: ``P`` stays exactly symmetric)."""
+        if snap.n != self.n:
+            raise ValueError(f"restore: the snapshot has {snap.n} numbers, the state {self.n}; a trial must not "
+                             "add, remove or convert features")
+        self.x = snap.x
+        if snap.camera_only:
+            self.P[:self.cam_dim] = snap.P
+            self.P[:, :self.cam_dim] = snap.P.T
+        else:
+            self.P = snap.P
+
+    def add_camera_noise(self, Q_vv: np.ndarray) -> None:
+        """``P_vv <- P_vv + (Q + Q^T) / 2``: more process noise in the camera block (cd, cd)."""
+        cd = self.cam_dim
+        self.P[:cd, :cd] += 0.5 * (Q_vv + Q_vv.T)
+
+    def restart_camera(self, x_v, P_vv) -> None:
+        """The camera's pose and motion (the first 13 numbers) replaced by ``x_v`` with covariance
+        ``P_vv`` (at least 13 of each), uncorrelated with the rest; the bias and clock states
+        and their correlations with the map are kept."""
+        d = CAMERA_DIM
+        x = self.x.copy()
+        x[:d] = x_v[:d]
+        P = self.P.copy()
+        P[:d, :] = 0.0
+        P[:, :d] = 0.0
+        P[:d, :d] = P_vv[:d, :d]
+        if self.cam_dim > d:
+            P[d:self.cam_dim, d:self.cam_dim] = self.P[d:self.cam_dim, d:self.cam_dim]
+        self.x, self.P = x, P
+
+    def check(self, where: str, psd_rel_tol: float = 1e-9) -> None:
+        """The full covariance guard (positive semi-definiteness included), ``P`` symmetrised."""
+        self.P = check_covariance(self.P, where, psd_rel_tol, True, self.describe)
+
     def guard(self, where: str = "", psd_rel_tol: float = 1e-9, check_psd: bool = True) -> None:
         """Run :func:`check_mean` and :func:`check_covariance` (symmetrising ``P``)."""
         check_mean(self.x, where, self.describe)
         self.P = check_covariance(self.P, where, psd_rel_tol, check_psd, self.describe)
+
+
+@dataclass(frozen=True)
+class StateSnapshot:
+    """A state's mean and covariance (or the camera block's rows of it) kept for a trial that
+    may be rolled back (:meth:`State.snapshot`, :meth:`State.restore`)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    camera_only: bool
+    n: int

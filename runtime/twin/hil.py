@@ -423,7 +423,7 @@ class HilSession:
 
     def run(self, progress: bool = True) -> HilStats:
         """Serve one session: the scenario's duration, then ``linger_s`` of the board alone."""
-        from tqdm import tqdm
+        from kinematics.progress import progress_bar
 
         twin = self.twin
         self.out.mkdir(parents=True, exist_ok=True)
@@ -450,7 +450,7 @@ class HilSession:
         self._emit_imu(obs.imu.rows())
         self._truth(twin)
         self._publish(obs, 0)
-        bar = tqdm(total=n_frames, desc="hil", unit="frame", disable=not progress)
+        bar = progress_bar(total=n_frames, desc="hil", unit="frame", disable=not progress)
         bar.update(1)
         try:
             for k in range(1, n_frames):

@@ -83,6 +83,6 @@ def clicked_target(twin: Twin, error_px: float = CLICK_ERROR_PX, rng: np.random.
     hidden = np.flatnonzero(hidden_points(twin, twin.ground_truth.T_world_cam[:3, 3], exact.xyz))
     if len(hidden):
         raise TargetHidden(f"the target's corners {hidden.tolist()} are hidden behind the scene at the start of "
-                           f"{twin.scenario.name} (no one could click them); use another --scene-seed or --seed")
+                           f"{twin.scenario.name} (no one could click them); use another seed")
     rng = np.random.default_rng([twin.seed, CLICK_STREAM]) if rng is None else rng
     return Target(xyz=exact.xyz, uv=click(exact.uv, error_px, rng, twin.camera.width, twin.camera.height))

@@ -20,7 +20,7 @@ from typing import Iterator
 
 import numpy as np
 import tomli_w
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics import ServoFilter
 from kinematics.geometry import save_head
@@ -75,7 +75,7 @@ def record(twin: Twin, scenario, out: str | Path, seconds: float | None = None, 
         save_head(twin.head, out / "head.toml")
         save_target(exact, out / "target_truth.toml")
         (out / "twin.toml").write_text(tomli_w.dumps(_recording_table(twin, click_error_px)))
-        for obs in tqdm(scripted_frames(twin, obs), total=n_frames, desc=f"record {twin.scenario.name}", unit="frame",
+        for obs in progress_bar(scripted_frames(twin, obs), total=n_frames, desc=f"record {twin.scenario.name}", unit="frame",
                         disable=not progress):
             gt = twin.ground_truth
             times.append(obs.t)

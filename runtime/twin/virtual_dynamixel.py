@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from contextlib import contextmanager
 
 from ..drivers.dynamixel import (ACCEL_UNIT_RAD_S2, ADDR_BUS_WATCHDOG, ADDR_GOAL_POSITION, ADDR_MAX_POSITION,
                                  ADDR_MIN_POSITION, ADDR_OPERATING_MODE, ADDR_PRESENT_POSITION,
@@ -25,6 +26,27 @@ ERR_INSTRUCTION, ERR_CRC, ERR_DATA_RANGE, ERR_ACCESS = 0x02, 0x03, 0x04, 0x07
 MODEL_XL430 = 1060
 TABLE_SIZE = 147
 TICKS_PER_RAD = TICKS_PER_TURN / (2 * math.pi)
+
+
+#: How long a host should wait for this bus's answer, s. Real servos answer within a millisecond
+#: and ROBOTIS's SDK waits 2 x its 16 ms latency timer + 2 ms; the virtual bus answers from a
+#: Python thread behind a pty, which a loaded 2-core machine can hold off for longer than that.
+ANSWER_DEADLINE_S = 2.0
+
+
+@contextmanager
+def patient_host(deadline_s: float = ANSWER_DEADLINE_S):
+    """Within the block, ROBOTIS's SDK waits about ``deadline_s`` for each status packet (its
+    packet timeout is 2 x LATENCY_TIMER + 2 ms + the bytes' time): the virtual bus's answers
+    then hold on a loaded machine. Restores the SDK's own timer after."""
+    import dynamixel_sdk.port_handler as ph
+
+    old = ph.LATENCY_TIMER
+    ph.LATENCY_TIMER = (1000.0 * deadline_s - 2.0) / 2.0
+    try:
+        yield
+    finally:
+        ph.LATENCY_TIMER = old
 
 
 def crc16(data) -> int:

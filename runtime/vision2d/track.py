@@ -19,7 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.outdir import output_folder
 from runtime.sequence import Sequence, open_sequence
@@ -122,7 +122,7 @@ def _track_frames(seq: Sequence, out: Path, init, method: str, config, annotate:
     results: list[TrackResult | None] = []
     skipped: list[SkippedFrame] = []
     learn_s = track_s = 0.0
-    for frame in tqdm(seq.frames(), total=len(seq), desc=f"track ({method})", unit="frame", disable=not progress):
+    for frame in progress_bar(seq.frames(), total=len(seq), desc=f"track ({method})", unit="frame", disable=not progress):
         if not frame.ok:
             skipped.append(SkippedFrame(frame.index, frame.problem))
             results.append(None)
@@ -160,7 +160,7 @@ def track_sequence(seq_path, out_dir, init, method: str = "hyperplane", progress
     """
     _check_method(method)
     seq = open_sequence(seq_path)
-    with output_folder(out_dir) as out:
+    with output_folder(out_dir, kind="track") as out:
         results, skipped, learn_s, track_s = _track_frames(seq, out, init, method, config, annotate, progress)
         with open(out / "polygons.csv", "w", newline="") as f:
             w = csv.writer(f)

@@ -5,6 +5,8 @@ from dataclasses import replace
 
 import pytest
 
+from kinematics.outdir import OutputFolderError
+
 from design.sweep import SweepStateError, open_client, run_sweep
 from design.sweep_file import SweepFileError, spec_from_dict, spec_to_dict
 from test_sweep import read_rows, tiny_spec
@@ -76,7 +78,8 @@ def test_resume_with_a_smaller_budget_is_refused(tmp_path):
 
 def test_folder_of_another_run_is_not_overwritten(tmp_path):
     (tmp_path / "report.md").write_text("a sim run's report")
-    with pytest.raises(SweepStateError, match="not a design sweep's"):
+    # The shared output-folder check refuses it before the sweep's own (kinematics.outdir).
+    with pytest.raises(OutputFolderError, match="no wvr run wrote it"):
         run_sweep(tiny_spec(3), tmp_path, progress=False)
     assert (tmp_path / "report.md").read_text() == "a sim run's report"
 

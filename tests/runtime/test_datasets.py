@@ -216,7 +216,8 @@ def test_cli_convert_euroc(tmp_path, capsys):
     assert seq.stamps_ns.tolist() == [T0 + i * DT for i in range(4)]
     # Refused the second time: the folder already holds a sequence.
     rc, out = _run_cli(["convert", "euroc", str(tmp_path / "src"), "--out", str(tmp_path / "seq")], capsys)
-    assert rc == 2 and "already exists" in out.err
+    # The folder holds the first conversion's finished results: refused, one line, naming the fix.
+    assert rc == 2 and "already holds the finished" in out.err and "another --out" in out.err
 
 
 # ------------------------------------------------------------------------------------- KITTI

@@ -21,7 +21,7 @@ from runtime.drivers.rig import RigFileError, load_rig
 from runtime.safety import SafetyChain, SafetySettings
 from runtime.robot import JOINTS_MEASURED, JointCommand
 from runtime.twin.hil import PtyDevice
-from runtime.twin.virtual_dynamixel import VirtualDynamixelBus, crc16, packet, stuff, unstuff
+from runtime.twin.virtual_dynamixel import VirtualDynamixelBus, crc16, packet, patient_host, stuff, unstuff
 from wvr.assemble import make_rig
 
 DT = 1 / 30
@@ -70,6 +70,13 @@ def write_rig(tmp_path, port="/dev/ttyUSB0", watchdog_ms=100, speed=200.0, text=
     p.write_text(text if text is not None else
                  RIG.format(port=port, watchdog_ms=watchdog_ms, speed=speed, frames=str(tmp_path / "f*.png")))
     return p
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _patient_host():
+    """The virtual bus answers from a thread: wait for it as long as a loaded machine needs."""
+    with patient_host():
+        yield
 
 
 @pytest.fixture
@@ -251,3 +258,26 @@ def test_the_rig_runs_on_dynamixel_servos_and_reports_their_encoders(tmp_path, b
         assert np.all(np.sign(q_enc) == np.sign([0.2, -0.1, 0.05])) and np.all(np.abs(q_enc) > 0.01)
     finally:
         rig.close()
+
+
+def test_start_holds_when_the_bus_answers_late(tmp_path):
+    """A loaded machine holds the virtual bus's thread off: answers 100 ms late (three times the
+    SDK's own 34 ms deadline) must still be taken, not read as a missing servo."""
+    vb = VirtualDynamixelBus(ids=(1, 2, 3), positions=[2048, 2000, 2100], run=False)
+
+    def late(data: bytes) -> bytes:
+        answer = vb.feed(data)
+        if answer:
+            time.sleep(0.1)
+        return answer
+
+    dev = PtyDevice(late, "dynamixel")
+    cfg = load_rig(write_rig(tmp_path, dev.path))
+    board = DynamixelBoard(cfg, DynamixelBus(cfg.port, cfg.baud, cfg.channels))
+    try:
+        board.start()
+        np.testing.assert_allclose(board.positions(), [0, 0, 0], atol=1e-9)
+    finally:
+        board.close()
+        dev.close()
+        vb.close()

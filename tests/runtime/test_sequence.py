@@ -458,9 +458,9 @@ def test_writer_refuses_bad_input(tmp_path):
             w.add_frame(2.0, np.zeros((CAM.height, CAM.width)))
         with pytest.raises(SequenceError, match="rigid"):
             w.add_groundtruth(0.0, 2.0 * np.eye(4))
-    with pytest.raises(SequenceError, match="already exists") as e:
+    with pytest.raises(SequenceError, match="already holds the finished results of wvr sim record") as e:
         SequenceWriter(tmp_path / "a", CAM)
-    assert "overwrite" not in str(e.value) and "new folder" in str(e.value)  # no API argument in the hint
+    assert "overwrite" not in str(e.value) and "give another --out" in str(e.value)  # no API argument in the hint
     with SequenceWriter(tmp_path / "a", CAM, overwrite=True) as w:
         w.add_frame(5.0, grey_image(0))
     assert len(open_sequence(tmp_path / "a")) == 1

@@ -100,12 +100,8 @@ def test_a_target_point_keeps_the_identity():
 def _track_with(features, q_world_cam):
     from types import SimpleNamespace
 
-    from runtime.slam.system import _Track
-    track = _Track.__new__(_Track)
-    track.features = features
-    track._first_views_key = None
-    track.state = SimpleNamespace(q=np.asarray(q_world_cam, float))
-    return track
+    from runtime.slam.views import SlamMap
+    return SlamMap(SimpleNamespace(q=np.asarray(q_world_cam, float)), features)
 
 
 def test_the_shape_turns_with_the_cameras_roll_since_the_first_view():
@@ -114,18 +110,19 @@ def test_the_shape_turns_with_the_cameras_roll_since_the_first_view():
     from scipy.spatial.transform import Rotation
 
     f = MapFeature(0, _edge(0.0), 0, np.zeros(3), R0=np.eye(3))
-    upright = _track_with([f], [1.0, 0.0, 0.0, 0.0])._noise_shapes(np.array([0]))[0]
+    upright = _track_with([f], [1.0, 0.0, 0.0, 0.0]).noise_shapes(np.array([0]))[0]
     np.testing.assert_allclose(upright, f.noise_shape)
     assert abs(_major_axis(upright)[1][1]) > 0.999
     q_xyzw = Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_quat()
-    rolled = _track_with([f], np.r_[q_xyzw[3], q_xyzw[:3]])._noise_shapes(np.array([0]))[0]
+    rolled = _track_with([f], np.r_[q_xyzw[3], q_xyzw[:3]]).noise_shapes(np.array([0]))[0]
     assert abs(_major_axis(rolled)[1][0]) > 0.999
     np.testing.assert_allclose(np.linalg.eigvalsh(rolled), np.linalg.eigvalsh(upright))
 
 
 def test_relocalisation_counts_an_edge_as_elongated_and_a_corner_not():
-    """The test (_Track._elongated) that puts edges after the rest among relocalisation's
+    """The test (relocalisation.Relocaliser.elongated) that puts edges after the rest among relocalisation's
     candidates."""
     track = _track_with([MapFeature(0, _edge(0.7), 0, np.zeros(3)), MapFeature(1, _corner(), 0, np.zeros(3))],
                         [1.0, 0.0, 0.0, 0.0])
-    assert track._elongated(0) and not track._elongated(1)
+    from runtime.slam.relocalisation import Relocaliser
+    assert Relocaliser.elongated(track, 0) and not Relocaliser.elongated(track, 1)

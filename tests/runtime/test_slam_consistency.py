@@ -155,7 +155,7 @@ def simulate_inverse_depth(seed: int, n_frames: int = 75, n_known: int = 6, n_ne
         a, b = camera_nees(s, x_true)
         nees_r.append(a)
         nees_th.append(b)
-        # The system's linearity test (system._Track._convert), checked against the model's own.
+        # The system's linearity test (mapping.MapManager.conversions), checked against the model's own.
         _, L = inverse_depth.points_and_linearity_kernel(s.x, s.P, s.kinds, s.starts, s.anchors, s.r, 0.05)
         for k in np.flatnonzero(L < SETTINGS.linearity_threshold)[::-1]:
             i_rho = s.feature_slice(k).start + 5

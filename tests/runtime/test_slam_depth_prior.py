@@ -1,5 +1,5 @@
 """New inverse-depth features start at the depths the map holds (inverse_depth.scene_prior),
-through the tracker's own feature addition (_Track._add)."""
+through the tracker's own feature addition (mapping.MapManager.add)."""
 
 from __future__ import annotations
 
@@ -51,12 +51,12 @@ def add_after(slam, img, used_ks, remove_first: int | None = None) -> list[int]:
     track = slam.track
     ks = np.arange(len(track.features))
     used = np.isin(ks, used_ks)
-    track.last = SearchView(np.array([f.id for f in track.features]), np.zeros((len(ks), 2)),
-                            np.tile(np.eye(2), (len(ks), 1, 1)), np.zeros((len(ks), 2)), used, ks)
+    track.map.last = SearchView(np.array([f.id for f in track.features]), np.zeros((len(ks), 2)),
+                                np.tile(np.eye(2), (len(ks), 1, 1)), np.zeros((len(ks), 2)), used, ks)
     if remove_first is not None:
-        track._remove([remove_first], FrameStats(frame=3, t=0.1))
+        track.map.remove([remove_first], FrameStats(frame=3, t=0.1))
     before = len(track.features)
-    track._add(grey(img), FrameStats(frame=3, t=0.1), 3, 0)
+    track.mapping.add(grey(img), track.map, FrameStats(frame=3, t=0.1), 3, 0)
     new = list(range(before, len(track.features)))
     assert new and (slam.state.kinds[new] == INVERSE_DEPTH).all()
     return new

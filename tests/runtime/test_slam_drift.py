@@ -1,5 +1,5 @@
 """A natural feature's persistent residual (MapFeature.drift): folded in after each update and
-turned into a larger measurement variance by the tracker (_Track._select)."""
+turned into a larger measurement variance by the tracker (measure.Measurement.select)."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def test_a_persistent_residual_is_kept_and_white_residuals_average_out():
 
 
 def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
-    """Through _Track._select: the same feature's innovation covariance grows by its drift's
+    """Through measure.Measurement.select: the same feature's innovation covariance grows by its drift's
     variance scale (the target's points, never given a drift, are unchanged), and not at all
     with drift_gain 0."""
     r0 = np.array([0.05, -0.55, 0.25])
@@ -61,13 +61,13 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     track = slam.track
     for f in track.features:
         f.drift = None                                # a clean slate: only the one set below
-    pred0, S0, r0_scale, _, _ = track._select()
+    pred0, S0, r0_scale, _, _ = track.measurement.select(track.map)
     natural = [j for j, k in enumerate(pred0.ks) if not track.features[k].known]
     assert natural, "the scene gave no natural feature in view"
     j = natural[0]
     k = int(pred0.ks[j])
     track.features[k].drift = np.array([2.0, 0.0])
-    pred1, S1, r1_scale, _, _ = track._select()
+    pred1, S1, r1_scale, _, _ = track.measurement.select(track.map)
     assert list(pred1.ks) == list(pred0.ks)
     scale = 1.0 + slam.settings.drift_gain * 4.0 / DEFAULT_CONFIG.sigma_pixel**2
     np.testing.assert_allclose(r1_scale[j], r0_scale[j] * scale)
@@ -76,6 +76,6 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     np.testing.assert_allclose(S1[j] - S0[j], (scale - 1.0) * R, atol=1e-9)
     others = [i for i in range(len(pred0.ks)) if i != j]
     np.testing.assert_allclose(S1[others], S0[others])
-    slam.settings = replace(slam.settings, drift_gain=0.0)
-    _, S2, _, _, _ = track._select()
+    track.measurement.settings = replace(slam.settings, drift_gain=0.0)
+    _, S2, _, _, _ = track.measurement.select(track.map)
     np.testing.assert_allclose(S2, S0)

@@ -152,7 +152,7 @@ def test_a_track_raises_its_angular_impulse_when_its_rate_estimate_jumps():
         assert (still == cfg.sigma_alpha).all()
         track = slam.track
         track.state.x[W_SLICE] += [0.0, 3.0, 0.0]
-        track._adapt_impulse(76 / 30)        # as after a frame whose update left the rate there
+        track.impulses.adapt(76 / 30, track.state)        # as after a frame whose update left the rate there
         assert slam.process(img, 76 / 30).sigma_alpha == expected
 
 

@@ -17,7 +17,7 @@ from kinematics.camera import in_image
 from runtime.slam.config import MapSettings, SlamConfig
 from runtime.slam.features import POINT
 from runtime.slam.filter import update
-from runtime.slam.inertial import GRAVITY, ImuStream, imu_intervals, imu_step_and_jacobians, predict_imu
+from runtime.slam.inertial import ImuStream, imu_intervals, imu_step_and_jacobians, predict_imu
 from runtime.slam.motion import bias_walk
 from runtime.slam.quaternion import normalise_quaternion_jacobian, quat_to_rotation
 from runtime.slam.state import (
@@ -33,6 +33,11 @@ from runtime.slam.state import (
     W_SLICE,
     State,
 )
+
+#: The world's gravity, z up, as the twin's physics has it (MuJoCo's gravity option in
+#: runtime/twin/scene.py), written out here so that the tests do not take it from the module they
+#: check: a flipped or mis-scaled constant there must fail them.
+G_WORLD = np.array([0.0, 0.0, -9.81])
 
 CFG = SlamConfig()
 
@@ -112,7 +117,7 @@ def analytic_imu(a_world, w_cam, R0, t, b_g=np.zeros(3), b_a=np.zeros(3)):
     """Samples of a camera with constant world acceleration and constant body rate, with
     constant biases added: the integrator holds R(q) f, the world acceleration, exactly."""
     Rt = [R0 * Rotation.from_rotvec(w_cam * ti) for ti in t]
-    return np.array([[ti, *(w_cam + b_g), *(Ri.as_matrix().T @ (a_world - GRAVITY) + b_a)] for ti, Ri in zip(t, Rt)]), Rt
+    return np.array([[ti, *(w_cam + b_g), *(Ri.as_matrix().T @ (a_world - G_WORLD) + b_a)] for ti, Ri in zip(t, Rt)]), Rt
 
 
 @pytest.mark.parametrize("cam_dim", [CAMERA_DIM, CAMERA_DIM_BIASED])
@@ -206,7 +211,7 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
     rows, states = [], [x]
     for j in range(n):
         a = -2.0 * x[:3] - 1.0 * x[7:10] + 0.4 * np.sin([1.1 * t[j] + ph[3], 0.8 * t[j] + ph[4], 1.5 * t[j] + ph[5]])
-        f = quat_to_rotation(x[Q_SLICE]).T @ (a - GRAVITY)
+        f = quat_to_rotation(x[Q_SLICE]).T @ (a - G_WORLD)
         rows.append([t[j], *(w_true[j] + b_g + rng.normal(0, sg, 3)), *(f + b_a + rng.normal(0, sa, 3))])
         x, _, _ = imu_step_and_jacobians(x, w_true[j], f, dt)
         x[Q_SLICE] /= np.linalg.norm(x[Q_SLICE])
@@ -330,7 +335,7 @@ def test_still_biases_accelerometer_jacobian_against_finite_differences():
     rng = np.random.default_rng(3)
     q = st.random_quat(rng)
     t = np.arange(0.0, 1.0, 0.005)
-    f = quat_to_rotation(q).T @ -GRAVITY + np.array([0.05, -0.02, 0.03])
+    f = quat_to_rotation(q).T @ -G_WORLD + np.array([0.05, -0.02, 0.03])
     imu = np.column_stack([t, np.tile([0.004, 0.0, -0.002], (len(t), 1)), np.tile(f, (len(t), 1))])
     s = MapSettings()
     res = still_biases(imu, t[-1], q, s, CFG)
@@ -338,3 +343,16 @@ def test_still_biases_accelerometer_jacobian_against_finite_differences():
     np.testing.assert_allclose(res.b_a, [0.05, -0.02, 0.03], atol=1e-12)
     J_fd = st.fd_jacobian(lambda qq: still_biases(imu, t[-1], qq, s, CFG).b_a, q)
     st.assert_jacobian(res.J_q, J_fd)
+
+
+def test_an_imu_at_rest_predicts_no_motion():
+    """A still camera's accelerometer reads the specific force +9.81 m/s^2 towards world up
+    (physics, not the module's constant): integrated, it must neither rise nor fall."""
+    rng = np.random.default_rng(7)
+    q = st.random_quat(rng)
+    f_still = quat_to_rotation(q).T @ np.array([0.0, 0.0, 9.81])
+    x = np.r_[0.0, 0.0, 0.0, q, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    for _ in range(100):                      # 1 s at 100 Hz
+        x, _, _ = imu_step_and_jacobians(x, np.zeros(3), f_still, 0.01)
+    np.testing.assert_allclose(x[:3], 0.0, atol=1e-9)
+    np.testing.assert_allclose(x[7:10], 0.0, atol=1e-9)

@@ -1,5 +1,5 @@
 """The map's size cap: which natural features leave a full map (system.cap_victims and
-_Track._delete)."""
+mapping.MapManager.delete)."""
 
 from __future__ import annotations
 
@@ -54,13 +54,13 @@ def test_a_full_map_drops_unsettled_features_out_of_view_first():
              natural[4]: (True, 1), natural[5]: (True, 2)}          # in view, oldest of all
     for k in natural[6:]:
         story[k] = (True, 10)
-    track.in_view_ids = {track.features[k].id for k, (seen, _) in story.items() if seen}
+    track.map.in_view_ids = {track.features[k].id for k, (seen, _) in story.items() if seen}
     for k, (_, last) in story.items():
         track.features[k].last_seen = last
         track.features[k].attempts = track.features[k].successes = 0     # no deletion for failing
     ids = {k: track.features[k].id for k in natural}
-    slam.settings = replace(slam.settings, max_features=len(track.features) - 2)
-    track._delete(FrameStats(frame=11, t=11 / 30), 11)
+    track.mapping.settings = replace(slam.settings, max_features=len(track.features) - 2)
+    track.mapping.delete(track.map, FrameStats(frame=11, t=11 / 30), 11)
     left = {f.id for f in track.features if not f.known}
     assert left == {ids[k] for k in natural} - {ids[natural[2]], ids[natural[3]]}
     assert state.n_features == len(track.features)
@@ -85,11 +85,11 @@ def test_inverse_depth_features_convert_below_the_threshold_for_the_image_width(
     for i in (1, 2, 3):
         slam.process(img, i / 30)
     track = slam.track
-    _, L = track._points_and_linearity()
+    _, L = track.map.points_and_linearity()
     natural = [k for k, f in enumerate(track.features) if not f.known and slam.state.kinds[k] == INVERSE_DEPTH]
     assert len(natural) >= 8
-    assert not track._conversions(FrameStats(frame=4, t=4 / 30))[0]       # still far from linear
-    slam.linearity_threshold = float(np.median(L[natural]))
-    ks = track._conversions(FrameStats(frame=4, t=4 / 30))[0]
-    assert set(ks) == {k for k in natural if L[k] < slam.linearity_threshold}
+    assert not track.mapping.conversions(track.map, FrameStats(frame=4, t=4 / 30))[0]       # still far from linear
+    track.mapping.linearity_threshold = float(np.median(L[natural]))
+    ks = track.mapping.conversions(track.map, FrameStats(frame=4, t=4 / 30))[0]
+    assert set(ks) == {k for k in natural if L[k] < track.mapping.linearity_threshold}
     assert 0 < len(ks) < len(natural)

@@ -1,5 +1,5 @@
 """A turn's first frame measured again with the turn's impulses (SlamConfig.adapt_onset,
-system._Track.step): the frame whose update first shows the camera turning faster than
+track.Track.step): the frame whose update first shows the camera turning faster than
 ``adapt_turn_rate`` was predicted with the priors (MonoSLAM's 4 m/s^2 and 6 rad/s^2), which take
 the turn's unforeseen start partly as translation, and the smaller linear impulse a turn then
 predicts with holds that error (desk gaze-away seed 89: 0.29 m/s of velocity error at the turn's
@@ -49,7 +49,7 @@ def _run(frames, uv, onset: bool, force: dict | None = None):
     out = []
     for k, img in enumerate(frames[1:], 1):
         if force and k in force:
-            slam.track._set_impulses(*force[k])
+            slam.track.impulses.set(*force[k])
         s = slam.process(img, k / 30)
         out.append((s, slam.state.x.copy(), slam.state.P.copy(),
                     [(f.attempts, f.successes) for f in slam.track.features]))

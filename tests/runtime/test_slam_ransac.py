@@ -6,12 +6,13 @@ hypotheses, and leave the state updated with the inliers' information only."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 import slam_testing as st
-from runtime.slam.config import MapSettings, SlamConfig
+from runtime.slam.config import MapSettings, RansacSettings, SlamConfig
 from runtime.slam.features import POINT
 from runtime.slam.filter import innovation_covariances, update
 from runtime.slam.measurement import predict
@@ -29,8 +30,9 @@ RESCUE_99 = 9.21
 
 def ransac(state, ks, z, pred, S_prior, rng_seed=0, R_pix=1.0, threshold=S.ransac_threshold_px,
            max_hypotheses=S.ransac_max_hypotheses):
-    return one_point_ransac(state, ks, z, CAM, R_pix, pred, S_prior, threshold, max_hypotheses, S.ransac_confidence,
-                            RESCUE_99, np.random.default_rng(rng_seed))
+    return one_point_ransac(state, ks, z, CAM, R_pix, pred, S_prior,
+                            RansacSettings(threshold, max_hypotheses, S.ransac_confidence, RESCUE_99),
+                            np.random.default_rng(rng_seed))
 
 
 def draw_camera(s: State, rng: np.random.Generator):
@@ -236,13 +238,15 @@ def test_votes_choose_the_hypothesis_reliable_features_support():
         if gap < 10.0 or not all(inside):
             continue                       # the two groups must be apart and both searchable
         tried += 1
-        plain = one_point_ransac(s.copy(), ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, len(ks), 1 - 1e-12,
-                                 RESCUE_99, np.random.default_rng(seed))
+        plain = one_point_ransac(s.copy(), ks, z, CAM, 1.0, pred, S_prior,
+                                 RansacSettings(S.ransac_threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
+                                 np.random.default_rng(seed))
         votes = np.where(a, 1.0, 0.25)
         # Every match tried as a hypothesis (the adaptive count could stop before drawing one of the
         # smaller group: that is the sampling's chance, not the vote's).
-        weighted = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, len(ks), 1 - 1e-12,
-                                    RESCUE_99, np.random.default_rng(seed), votes=votes)
+        weighted = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior,
+                                    RansacSettings(S.ransac_threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
+                                    np.random.default_rng(seed), votes=votes)
         assert np.array_equal(weighted.used, a), (seed, gap)
         flipped += np.array_equal(plain.used, ~a)
     print(f"\ntwo groups apart in {tried} scenes; unweighted, the larger wrong group won in {flipped}")
@@ -250,27 +254,25 @@ def test_votes_choose_the_hypothesis_reliable_features_support():
 
 
 def test_the_tracker_votes_by_each_features_record():
-    """The tracker's votes (system._Track._votes): inlier matches + 1 over searches + 2, so a
+    """The tracker's votes (measure.Measurement.votes): inlier matches + 1 over searches + 2, so a
     feature at its first search votes a third and one matched in 60 of 60 nearly 1, and the
     votes follow the features asked for, in their order; a corner the target's sides placed
     this frame votes ``known_vote``."""
-    from runtime.slam.system import _Track
+    from runtime.slam.config import MapSettings
+    from runtime.slam.measure import Measurement
     from runtime.slam.templates import MapFeature
 
-    track = _Track.__new__(_Track)
+    measurement = Measurement(None, MapSettings(), 1.0, 0, None)
     records = [(1, 0), (60, 60), (10, 5), (4, 1)]
-    track.features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
-                      for i, (a, s) in enumerate(records)]
-    np.testing.assert_allclose(track._votes(np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
-    np.testing.assert_allclose(track._votes(np.array([3, 1])), [1 / 3, 61 / 62])
+    features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
+                for i, (a, s) in enumerate(records)]
+    np.testing.assert_allclose(measurement.votes(features, np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1])), [1 / 3, 61 / 62])
     # A target corner placed by the target's sides this frame votes MapSettings.known_vote.
-    from types import SimpleNamespace
-
-    from runtime.slam.config import MapSettings
-    track.slam = SimpleNamespace(settings=MapSettings(known_vote=5.0))
-    np.testing.assert_allclose(track._votes(np.array([3, 1, 2]), np.array([True, False, False])),
+    measurement.settings = MapSettings(known_vote=5.0)
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1, 2]), np.array([True, False, False])),
                                [5.0, 61 / 62, 0.5])
-    np.testing.assert_allclose(track._votes(np.array([3, 1]), np.array([False, False])), [1 / 3, 61 / 62])
+    np.testing.assert_allclose(measurement.votes(features, np.array([3, 1]), np.array([False, False])), [1 / 3, 61 / 62])
     with pytest.raises(ValueError, match="known_vote"):
         MapSettings(known_vote=0.0)                   # RANSAC takes positive votes only
 
@@ -287,14 +289,14 @@ def test_updates_refused_before_they_are_written_leave_the_state_as_it_was():
         seen.append((fu.x.copy(), fu.variances(slice(0, 13))))
         return False
 
-    res = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, S.ransac_max_hypotheses,
-                           S.ransac_confidence, RESCUE_99, np.random.default_rng(0), accept=look)
+    res = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, replace(S.ransac, rescue_chi2=RESCUE_99),
+                           np.random.default_rng(0), accept=look)
     assert res.refused and not res.used.any() and len(seen) == 1
     assert np.array_equal(s.x, x0) and np.array_equal(s.P, P0)
     plain = s.copy()
     res_plain = ransac(plain, ks, z, pred, S_prior, 0)
-    res_ok = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, S.ransac_threshold_px, S.ransac_max_hypotheses,
-                              S.ransac_confidence, RESCUE_99, np.random.default_rng(0), accept=lambda fu: True)
+    res_ok = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior, replace(S.ransac, rescue_chi2=RESCUE_99),
+                              np.random.default_rng(0), accept=lambda fu: True)
     assert not res_ok.refused and np.array_equal(res_ok.used, res_plain.used) and res_plain.used.any()
     assert np.array_equal(s.x, plain.x) and np.array_equal(s.P, plain.P)
     x_seen, var_seen = seen[0]

@@ -1,11 +1,11 @@
 """Recovering from what the motion model missed, on ray-cast images of the printed rectangle
 whose corners' true pixels are known: a jerk most features' ellipses miss is searched again with
-larger impulses (system._Track._measure), and after a drift the known target is re-acquired
-(system._Track._watch_target, startup.find_quadrilateral): the quadrilateral is found from a
+larger impulses (measure.Measurement.measure), and after a drift the known target is re-acquired
+(reacquire.TargetWatch.watch, startup.find_quadrilateral): the quadrilateral is found from a
 prediction tens of pixels off, and a filter whose pose was moved 5 cm away is put back at the
 target's pose, where without it it stays; a rectangle near the hidden target, at a pose the
 natural map refutes, does not move a camera the map holds. A pose so far off that the target
-is predicted off the image is put back by the whole-image search (system._Track._close_loop,
+is predicted off the image is put back by the whole-image search (reacquire.TargetWatch.close_loop,
 startup.locate_target), which a dark rectangle elsewhere does not fool; so is a pose that drifted
 in the first frames, before any natural feature was mapped to confirm with, where a dark patch
 of texture in the target's place is not taken."""
@@ -21,7 +21,7 @@ import slam_testing as st
 from runtime.sequence import Target
 from runtime.slam.config import DEFAULT_CONFIG, MapSettings
 from runtime.slam.quaternion import quat_to_rotation
-from runtime.slam import system
+from runtime.slam import reacquire
 from runtime.slam.startup import find_quadrilateral, locate_target
 from runtime.slam.system import MonoSLAM
 
@@ -83,8 +83,8 @@ def test_a_quadrilateral_whose_pose_is_half_a_turn_away_is_not_taken(monkeypatch
     off so): the pose it gives is refused, as the whole-image search refuses it, and the camera
     is not put there (its drift goes on); allowed any turn, it is moved half a turn round."""
     img, uv, (R, r) = view(0.6, 60.0)
-    real = system.find_quadrilateral
-    monkeypatch.setattr(system, "find_quadrilateral", lambda *a, **k: None if (q := real(*a, **k)) is None
+    real = reacquire.find_quadrilateral
+    monkeypatch.setattr(reacquire, "find_quadrilateral", lambda *a, **k: None if (q := real(*a, **k)) is None
                         else np.roll(q, 2, axis=0))
 
     def run(max_turn: float):
@@ -199,14 +199,14 @@ def test_a_pose_drifted_until_the_target_is_off_its_prediction_is_put_back_by_th
 def candidates(monkeypatch) -> list:
     """Every pose the whole-image search located (``locate_target``'s answers), as the run goes."""
     found = []
-    real = system.locate_target
+    real = reacquire.locate_target
 
     def spy(*a, **k):
         out = real(*a, **k)
         found.extend(out)
         return out
 
-    monkeypatch.setattr(system, "locate_target", spy)
+    monkeypatch.setattr(reacquire, "locate_target", spy)
     return found
 
 
@@ -291,7 +291,7 @@ def test_a_rectangle_near_the_hidden_target_does_not_move_a_camera_the_map_holds
         return np.linalg.norm(slam.state.x[0:3] - r), stats
 
     err, stats = run()
-    monkeypatch.setattr(system._Track, "_old_map_agrees", lambda *a, **k: True)
+    monkeypatch.setattr(reacquire.TargetWatch, "old_map_agrees", lambda *a, **k: True)
     err_blind, stats_blind = run()
     print(f"\nasking the map: re-acquired {any(s.reacquired for s in stats)}, {100 * err:.2f} cm off; "
           f"not asking: re-acquired {any(s.reacquired for s in stats_blind)}, {100 * err_blind:.2f} cm off")
@@ -301,7 +301,7 @@ def test_a_rectangle_near_the_hidden_target_does_not_move_a_camera_the_map_holds
 
 
 def test_the_map_confirms_a_pose_that_puts_its_features_near_their_projections_not_a_few_pixels_off():
-    """``_old_map_agrees`` at the camera's pose and at poses moved sideways by 1 and 6 pixels'
+    """``TargetWatch.old_map_agrees`` at the camera's pose and at poses moved sideways by 1 and 6 pixels'
     worth at the map's depth: all find the features inside the 8 px windows, but at 6 px they
     sit off the windows' centres, as the best scores of a wrong pose over bare texture do, and
     only a median within a third of the window confirms; with a window three times as wide the
@@ -317,10 +317,10 @@ def test_the_map_confirms_a_pose_that_puts_its_features_near_their_projections_n
     depth = float(np.median(((tr.world_points()[old] - r) @ R)[:, 2]))
 
     def agrees(px: float) -> bool:
-        return tr._old_map_agrees(img, R, r + R[:, 0] * px * depth / CAM.fx, old)
+        return tr.watch.old_map_agrees(img, tr.map, R, r + R[:, 0] * px * depth / CAM.fx, old)
 
     assert len(old) >= 8
     assert agrees(0.0) and agrees(1.0)
     assert not agrees(6.0)
-    slam.settings = replace(slam.settings, loop_window_px=24.0)
+    tr.watch.settings = replace(slam.settings, loop_window_px=24.0)
     assert agrees(6.0)

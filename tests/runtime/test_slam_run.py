@@ -247,7 +247,7 @@ def test_a_lost_track_is_said_and_found_again_in_the_maps_frame(static_seq, tmp_
 
 @pytest.mark.slow
 def test_a_pose_the_map_does_not_confirm_leaves_the_track_lost(walk_seq, tmp_path, monkeypatch):
-    import runtime.slam.system as system
+    import runtime.slam.relocalisation as relocalisation
     from runtime.slam.relocalise import Relocalisation
 
     seq = copy_of(walk_seq, tmp_path)
@@ -259,7 +259,7 @@ def test_a_pose_the_map_does_not_confirm_leaves_the_track_lost(walk_seq, tmp_pat
         proposed.append(1)
         return Relocalisation(np.eye(3), np.array([1.0, 1.0, 1.0]), np.arange(4))
 
-    monkeypatch.setattr(system, "relocalise", wrong_pose)
+    monkeypatch.setattr(relocalisation, "relocalise", wrong_pose)
     run_slam(seq, tmp_path / "out", progress=False, settings=CAMERA_ONLY)
     frames = json.loads((tmp_path / "out" / "stats.json").read_text())["frames"]
     assert len(proposed) >= 5                     # the relocaliser was asked, and proposed

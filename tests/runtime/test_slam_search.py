@@ -65,7 +65,7 @@ def test_new_corners_avoid_occupied_regions_and_borders():
 
 
 def test_new_features_preferred_are_the_first_the_test_passes_else_the_first_of_all():
-    """``prefer``/``take`` (where the motion keeps a new feature in view, system._add): the
+    """``prefer``/``take`` (where the motion keeps a new feature in view, mapping.MapManager.add): the
     first ``take`` candidates the test passes, in the detector's order, or the first ``take``
     of all when it passes none; the same as filtering the full list."""
     img = textured(3, (240, 320))

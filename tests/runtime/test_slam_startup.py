@@ -326,13 +326,13 @@ def test_the_sides_place_a_corner_its_template_missed_or_matched_pixels_off(miss
     z[off] += [2.4, -1.8]                                   # 3 px off
     if missing is not None:
         z[missing] = np.nan
-    placed = slam.track._known_by_edges(g, feats, z, truth + [1.5, 1.3])
+    placed = slam.track.measurement.known_by_edges(g, feats, z, truth + [1.5, 1.3])
     assert np.isfinite(z).all() and np.linalg.norm(z - truth, axis=1).max() < 0.05
     assert placed.tolist() == [True] * 4                   # what RANSAC's vote weighs (_votes)
     # Two found: the sides are not fitted, nothing is placed and z is left to the templates.
     z2 = truth.copy()
     z2[:2] = np.nan
-    assert not slam.track._known_by_edges(g, feats, z2, truth).any() and np.isnan(z2[:2]).all()
+    assert not slam.track.measurement.known_by_edges(g, feats, z2, truth).any() and np.isnan(z2[:2]).all()
 
 
 @pytest.mark.parametrize("move", [(0.02, 6.0, 4.0), (-0.03, -5.0, 6.0)])

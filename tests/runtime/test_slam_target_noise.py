@@ -25,7 +25,8 @@ def started(known_sigma_px: float) -> MonoSLAM:
 def test_target_corners_use_their_own_noise_and_natural_features_the_view_scaled_one():
     s = started(0.5)
     tr = s.track
-    ok, scale = tr._views(predict(tr.state, np.arange(tr.state.n_features), s.cam), tr.world_points())
+    ok, scale = tr.map.views(predict(tr.state, np.arange(tr.state.n_features), s.cam), tr.world_points(), s.cam, s.settings,
+                             s.cfg.sigma_pixel)
     known = np.array([f.known for f in tr.features])
     assert known.sum() == 4 and ok[known].all()
     np.testing.assert_allclose(scale[known], (0.5 / s.cfg.sigma_pixel) ** 2)

@@ -1,5 +1,5 @@
 """Which features a frame may measure and how much noise their templates carry
-(system._views_kernel): inside the image by the margin, seen within the view angle and range
+(views._views_kernel): inside the image by the margin, seen within the view angle and range
 ratio of their first view (the target's own limits for its corners), the noise scaled by the
 angle and the range ratio, against values computed by hand."""
 
@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from runtime.slam.system import _views_kernel
+from runtime.slam.views import _views_kernel
 
 W, H, MARGIN = 320.0, 240.0, 5.0
 LIMIT_DEG, LIMIT_KNOWN_DEG, RMAX, RMAX_KNOWN = 45.0, 60.0, 1.5, 3.0

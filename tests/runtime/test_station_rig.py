@@ -64,8 +64,26 @@ def test_the_station_drives_the_rig_and_its_stop_trips_the_rigs_latch(tmp_path):
             time.sleep(0.05)
         state = call(st, "GET", "/api/state")[1]
         corner = [f for f in state["features"] if f["known"]][2]
+        p_corner = np.array(corner["xyz"])            # a known corner: world frame, exact
+
+        def off_axis_deg() -> float:
+            """The true optic axis's angle to the corner (the twin's truth behind the board)."""
+            T = np.array(twin.ground_truth.T_world_cam)
+            d = p_corner - T[:3, 3]
+            return float(np.degrees(np.arccos(np.clip(T[:3, 2] @ d / np.linalg.norm(d), -1, 1))))
+
+        before = off_axis_deg()
+        t_fix = st.live.latest().t
         code, body = call(st, "POST", "/api/fixate", {"feature": corner["id"]})
         assert code == 200 and body["accepted"]
+        t0 = time.time()
+        while st.live.latest().t < t_fix + 2.5:       # the head turns at 30 deg/s, then settles
+            assert time.time() - t0 < 180
+            time.sleep(0.05)
+        after = off_axis_deg()
+        print(f"\nthe corner off the optic axis: {before:.2f} deg before the fixation, {after:.2f} deg after")
+        # The head turned to the corner: a no-op fixation stays at `before`, a wrong sign grows it.
+        assert after < 1.5 and after < before - 2.0, (before, after)
         code, _ = call(st, "POST", "/api/stop", {"reason": "station test"})
         assert code == 200
         assert rig.estop.tripped and cfg.estop_file.exists()

@@ -19,25 +19,28 @@ from pathlib import Path
 
 import numpy as np
 
+from kinematics.outdir import OutputFolder, check_folder
+
 from ...sequence import write_trajectory
 from .live import StationRun
 
 EVENTS_HEADER = ["t", "wall_time", "source", "action", "detail", "result", "reason", "first_motion_after_s"]
 
 
+#: The kind (kinematics.outdir) of the station's --out folder.
+KIND = "station"
+
+
 def check_out(out: str | Path) -> Path:
-    """The output folder, made if needed; ValueError (one line) if it cannot be."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} is a file; give a folder for the station's recording")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".station-write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise ValueError(f"--out {out} cannot be written ({e.strerror}); choose another folder") from None
-    return out
+    """The output folder, checked and nothing made (kinematics.outdir.check_folder: not a file,
+    writable, not another command's or another station's results, not being written);
+    OutputFolderError (a ValueError, one line) if it cannot be used."""
+    return check_folder(out, KIND)
+
+
+def claim_out(out: str | Path) -> OutputFolder:
+    """The output folder, created, locked and INCOMPLETE until its ``close`` (after :func:`finish`)."""
+    return OutputFolder(out, kind=KIND)
 
 
 def _status(out: Path, complete: bool, status: str, extra: dict | None = None) -> None:

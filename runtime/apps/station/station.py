@@ -88,7 +88,9 @@ class Station:
         self.wearer_token = wearer_token_for(self.token)
         self.host = host
         self.loopback = is_loopback(host)
-        self.out = record.check_out(out) if out is not None else None
+        # Locked from here to close(): a second station into this folder is refused.
+        self._folder = record.claim_out(out) if out is not None else None
+        self.out = self._folder.path if self._folder is not None else None
         self.notes = dict(notes or {})
         self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace,
                                 on_finish=on_finish)
@@ -197,6 +199,8 @@ class Station:
         elif self._begun:                  # it never ran: say so, never "running"
             record.failed(self.out, self.live.run.ended or "failed to start", self.notes)
             self._begun = False
+        if self._folder is not None:
+            self._folder.close(complete=self.live.started.is_set())
         return self.written
 
     def __enter__(self) -> "Station":

@@ -9,15 +9,9 @@ image point and how it converts to another kind.
 - :mod:`.particles`: the paper's factored-sampling ray (a depth pdf of particles, outside the
   state until it becomes a point).
 
-The kinds are numbered so compiled code can switch on them (:data:`FEATURE_DIMS` is indexed by
-kind).
+The kinds and their sizes are the state's layout (layout.py), read here by the models.
 """
 
-import numpy as np
+from ..layout import FEATURE_DIMS, FEATURE_NAMES, INVERSE_DEPTH, MAX_FEATURE_DIM, POINT
 
-POINT = 0
-INVERSE_DEPTH = 1
-
-FEATURE_DIMS = np.array([3, 6], dtype=np.intp)   #: numbers in the state, by kind
-FEATURE_NAMES = ("point", "inverse-depth")
-MAX_FEATURE_DIM = int(FEATURE_DIMS.max())
+__all__ = ["FEATURE_DIMS", "FEATURE_NAMES", "INVERSE_DEPTH", "MAX_FEATURE_DIM", "POINT"]

@@ -43,8 +43,7 @@ from kinematics.camera import CameraIntrinsics, unproject_jacobian
 
 from ..kernels import compiled_kernel
 from ..quaternion import quat_to_rotation, rotation_derivatives
-from ..state import POSE_DIM, Q_SLICE, R_SLICE
-from . import INVERSE_DEPTH
+from ..layout import INVERSE_DEPTH, POSE_DIM, Q_SLICE, R_SLICE
 from .ray import ray_kernel
 
 KIND = INVERSE_DEPTH

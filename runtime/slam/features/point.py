@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..kernels import compiled_kernel
-from . import POINT
+from ..layout import POINT
 from .ray import ray_kernel
 
 KIND = POINT

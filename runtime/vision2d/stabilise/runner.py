@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
-from tqdm import tqdm
+from kinematics.progress import progress_bar
 
 from kinematics.outdir import output_folder
 
@@ -116,7 +116,7 @@ def _stabilise_frames(seq, out: Path, stab: "Stabiliser", imu: ImuLog | None, se
     centre = (slice(c0[1], c0[1] + fsize[1]), slice(c0[0], c0[0] + fsize[0]))
     run = _Pass()
     prev_grey = prev_fov = prev_t = None
-    for fr in tqdm(seq.frames(), total=len(seq), desc="stabilise", unit="frame", disable=not progress):
+    for fr in progress_bar(seq.frames(), total=len(seq), desc="stabilise", unit="frame", disable=not progress):
         if not fr.ok:
             run.problems.append(fr.problem)
             continue
@@ -203,7 +203,7 @@ def stabilise_sequence(seq_path, out_dir, fovea=(320, 240), use_imu: bool = Fals
     if use_imu and seq.imu is None:
         raise ValueError(f"{Path(seq_path) / 'imu.txt'}: missing, so the IMU cannot be used; "
                          f"run without use_imu (--imu) or add imu.txt (timestamp wx wy wz ax ay az)")
-    with output_folder(out_dir) as out:
+    with output_folder(out_dir, kind="stabilise") as out:
         (out / "fovea").mkdir(exist_ok=True)
         run = _stabilise_frames(seq, out, Stabiliser(seq.camera, fsize, settings), seq.imu if use_imu else None,
                                 settings, progress)

@@ -1,0 +1,58 @@
+"""The state vector's layout, written once: the camera block's sizes and slices, the feature
+kinds and their sizes, and the offset table. The bottom of the package: it imports nothing of
+it, so the state (state.py) and the feature models (features/) both read it.
+
+Camera block ``x_v`` (13 numbers, 19 with IMU bias states, 20 with the IMU's clock offset):
+``r`` (0:3, m, world), ``q`` (3:7, w x y z, camera -> world), ``v`` (7:10, m/s, world), ``w``
+(10:13, rad/s, camera), ``b_g`` (13:16, rad/s), ``b_a`` (16:19, m/s^2), ``t_d`` (19, s).
+Features follow, each of the size its kind gives (:data:`FEATURE_DIMS`, indexed by kind).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CAMERA_DIM = 13          #: the MonoSLAM camera block
+CAMERA_DIM_BIASED = 19   #: with gyro and accelerometer bias states
+CAMERA_DIM_TIMED = 20    #: and the IMU's clock offset t_d (s)
+POSE_DIM = 7             #: r and q: the part of the camera block a measurement sees
+NOISE_DIM = 6            #: the constant-velocity impulse n = (V, Omega) = dt (a, alpha)
+
+R_SLICE = slice(0, 3)
+Q_SLICE = slice(3, 7)
+V_SLICE = slice(7, 10)
+W_SLICE = slice(10, 13)
+BG_SLICE = slice(13, 16)
+BA_SLICE = slice(16, 19)
+TD_INDEX = 19            #: t_d: an IMU sample stamped t was taken at camera time t - t_d
+
+CAMERA_NAMES = (("r", R_SLICE), ("q", Q_SLICE), ("v", V_SLICE), ("w", W_SLICE), ("b_g", BG_SLICE),
+                ("b_a", BA_SLICE), ("t_d", slice(TD_INDEX, TD_INDEX + 1)))
+
+# Feature kinds, numbered so compiled code can switch on them.
+POINT = 0
+INVERSE_DEPTH = 1
+
+FEATURE_DIMS = np.array([3, 6], dtype=np.intp)   #: numbers in the state, by kind
+FEATURE_NAMES = ("point", "inverse-depth")
+MAX_FEATURE_DIM = int(FEATURE_DIMS.max())
+
+
+def check_camera_dim(cam_dim: int) -> int:
+    """``cam_dim`` as an int, or a ValueError naming the three sizes the camera block may have."""
+    if cam_dim not in (CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED):
+        raise ValueError(f"the camera block has {CAMERA_DIM} numbers, {CAMERA_DIM_BIASED} with IMU biases or "
+                         f"{CAMERA_DIM_TIMED} with the IMU's clock offset as well; got {cam_dim}")
+    return int(cam_dim)
+
+
+def feature_starts(cam_dim: int, kinds: np.ndarray) -> np.ndarray:
+    """(N,) int: where each feature begins in the state vector."""
+    dims = FEATURE_DIMS[np.asarray(kinds, np.intp)]
+    return (cam_dim + np.concatenate([[0], np.cumsum(dims)[:-1]])).astype(np.intp) if len(dims) else \
+        np.zeros(0, np.intp)
+
+
+def state_size(cam_dim: int, kinds) -> int:
+    """The state vector's length for a camera block of ``cam_dim`` and features of ``kinds``."""
+    return int(cam_dim + FEATURE_DIMS[np.asarray(kinds, np.intp)].sum())

@@ -1,0 +1,224 @@
+"""Measurement and update: the features to measure this frame (predicted visible, spread over
+the image), their active search, the target's corners placed by its sides, and the 1-point
+RANSAC's EKF update with its record in each feature."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from kinematics.camera import CameraIntrinsics
+
+from .config import MapSettings, SlamConfig
+from .filter import FrameUpdate, innovation_covariances, innovation_nis
+from .matching import match_features
+from .measurement import Prediction, predict, predict_uv
+from .motion import f_and_dfdx_dfdn, noise_covariance
+from .ransac import one_point_ransac
+from .records import FrameStats, SearchView
+from .startup import RefinedTarget, corners_by_edges
+from .state import State
+from .templates import MapFeature
+from .views import SlamMap, warped
+
+#: Grid over the image for spreading the measured features (columns, rows).
+_GRID = (4, 3)
+
+
+class Measurement:
+    """One track's measurement. cam, settings : the camera and the map's settings; sigma_pixel :
+    a match's standard deviation, px; seed : the RANSAC's random order (per frame); target : the
+    known target (its corners are placed by its sides, ``known_edges``) or None."""
+
+    def __init__(self, cam: CameraIntrinsics, settings: MapSettings, sigma_pixel: float, seed: int,
+                 target: RefinedTarget | None):
+        self.cam, self.settings, self.sigma_pixel = cam, settings, float(sigma_pixel)
+        self.seed, self.target = seed, target
+
+    def select(self, m: SlamMap) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
+        """The features to measure this frame, their innovation covariances and noise (multiples
+        of the pixel noise: (m,), or (m, 2, 2) shaped by each template's gradients with
+        ``aperture_noise``), how many are predicted visible, and their points (m, 3)."""
+        s, cam = self.settings, self.cam
+        state = m.state
+        ks = np.arange(state.n_features)
+        if not len(ks):
+            empty = predict(state, ks, cam)
+            return empty, np.zeros((0, 2, 2)), np.zeros(0), 0, np.zeros((0, 3))
+        pred = predict(state, ks, cam)
+        Y = m.world_points()
+        ok, r_scale = m.views(pred, Y, cam, s, self.sigma_pixel)
+        sel = np.flatnonzero(ok)
+        r_scale = r_scale[sel]
+        if s.drift_gain > 0:
+            sig2 = self.sigma_pixel ** 2
+            r_scale = r_scale * np.array([m.features[k].drift_variance_scale(s.drift_gain, sig2) for k in sel])
+        if s.aperture_noise:
+            r_scale = r_scale[:, None, None] * m.noise_shapes(sel)
+        pred = pred.take(sel)
+        m.in_view_ids = {m.features[k].id for k in pred.ks}
+        S = innovation_covariances(state, pred, self.sigma_pixel**2, r_scale)
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        area = 9 * math.pi * np.sqrt(np.maximum(det, 0))   # the 3-sigma ellipse, px^2
+        searchable = np.isfinite(area) & (area <= s.max_search_area_px)
+        visible = int(len(sel))
+        idx = np.flatnonzero(searchable)
+        if len(idx) > s.measure_max:
+            # The most reliable first (MapFeature.reliability), the most uncertain among equals,
+            # spread over the image.
+            feats = [m.features[k] for k in pred.ks[idx]]
+            reliability = np.array([f.reliability for f in feats])
+            priority = reliability + 1e-6 * np.log(np.maximum(det[idx], 1e-12))
+            idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
+        pred = pred.take(idx)
+        return pred, S[idx], r_scale[idx], visible, Y[pred.ks]
+
+    def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
+        """``n`` of the candidates ``idx``: the target's points first, then round-robin over a
+        grid of image cells, the highest ``priority`` first."""
+        cam = self.cam
+        cell = (np.clip((uv[:, 0] / cam.width * _GRID[0]).astype(int), 0, _GRID[0] - 1) * _GRID[1]
+                + np.clip((uv[:, 1] / cam.height * _GRID[1]).astype(int), 0, _GRID[1] - 1))
+        order = np.lexsort((-priority, cell))
+        rank = np.empty(len(order), int)
+        for c in np.unique(cell):
+            members = order[cell[order] == c]
+            rank[members] = np.arange(len(members))
+        key = np.where(np.asarray(known, bool), -1, rank)
+        pick = np.lexsort((-priority, key))[:n]
+        return idx[np.sort(pick)]
+
+    def search(self, g: np.ndarray, m: SlamMap) -> tuple[Prediction, np.ndarray, np.ndarray, int, list, np.ndarray]:
+        """The features chosen this frame (:meth:`select`: prediction, innovation covariances, noise
+        scales, how many predicted visible) and their matches in ``g``: z (m, 2) NaN where not
+        found."""
+        s = self.settings
+        pred, S, r_scale, visible, Y = self.select(m)
+        feats = [m.features[k] for k in pred.ks]
+        warp = np.array([warped(s.warp, f) for f in feats], bool)
+        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, pred.uv, S,
+                                     s.match_score, s.max_search_area_px)
+        z[~found] = np.nan
+        return pred, S, r_scale, visible, feats, z
+
+    def measure(self, g: np.ndarray, m: SlamMap, st: FrameStats, frame: int, motion_cfg: SlamConfig,
+                retry_dt: float | None = None,
+                accept: Callable[[FrameUpdate], bool] | None = None) -> tuple[bool, float]:
+        """Search, RANSAC and update for this frame; ``retry_dt`` : the constant-velocity
+        prediction's interval, s, when a frame most searches miss may be searched again;
+        ``accept`` : shown the updates before they are written (one_point_ransac). False when it
+        refused them: the state and the features' records are as they were. Returns whether the
+        updates were written and the change of the track's start-up evidence (a log-likelihood)."""
+        s, cam = self.settings, self.cam
+        pred, S, r_scale, visible, feats, z = self.search(g, m)
+        n = len(pred.ks)
+        n_found = int(np.isfinite(z).all(axis=1).sum())
+        if retry_dt and s.retry_noise_gain > 1 and n >= s.retry_min_searched and n_found < s.retry_found_fraction * n:
+            # Most features missed their ellipses: a jerk the constant-velocity model did not
+            # allow for (a fast turn's start or stop). The prediction's impulse is taken
+            # retry_noise_gain times larger and the frame searched again in the grown ellipses,
+            # kept if it finds more (after a long gap the grown ellipses can pass searching).
+            first, before = (pred, S, r_scale, visible, feats, z), m.state.snapshot(camera_only=True)
+            self._grow_impulse(m.state, motion_cfg, retry_dt, s.retry_noise_gain)
+            pred, S, r_scale, visible, feats, z = self.search(g, m)
+            if np.isfinite(z).all(axis=1).sum() > n_found:
+                st.retried = True
+            else:
+                pred, S, r_scale, visible, feats, z = first
+                m.state.restore(before)
+            n = len(pred.ks)
+        st.predicted = visible
+        edged = self.known_by_edges(g, feats, z, pred.uv) if s.known_edges else np.zeros(n, bool)
+        for f in feats:
+            f.attempts += 1
+        st.searched = n
+        found = np.isfinite(z).all(axis=1)
+        st.found = int(found.sum())
+        m.last = SearchView(np.array([m.features[k].id for k in pred.ks], int), pred.uv.copy(), S.copy(), z,
+                            np.zeros(n, bool), pred.ks.copy())
+        if not found.any():
+            return True, -(0.5 * s.ambiguity_gate_chi2 * n)
+        fi = np.flatnonzero(found)
+        sub = pred.take(fi)
+        rng = np.random.default_rng((self.seed, frame))
+        res = one_point_ransac(m.state, sub.ks, z[fi], cam, self.sigma_pixel**2, sub, S[fi], s.ransac, rng,
+                               r_scale[fi], votes=self.votes(m.features, sub.ks, edged[fi]), accept=accept)
+        if res.refused:
+            for f in feats:             # the search counted as not made (the votes read it first)
+                f.attempts -= 1
+            return False, 0.0
+        used = res.used.tolist()
+        ks_found = sub.ks.tolist()
+        for k, u in zip(ks_found, used):
+            if u:
+                m.features[k].successes += 1
+                m.features[k].last_seen = frame
+        m.last.used[fi] = res.used
+        if s.drift_gain > 0 and res.used.any():
+            ku = sub.ks[res.used]
+            residual = z[fi][res.used] - predict_uv(m.state, ku, cam)
+            for k, r, finite in zip(ku.tolist(), residual, np.isfinite(residual).all(axis=1).tolist()):
+                if finite and not m.features[k].known:
+                    m.features[k].note_residual(r, s.drift_memory)
+        st.matched = res.n_inliers
+        st.rescued = int(res.rescued.sum())
+        st.outliers = res.n_outliers
+        # Evidence for this track's start-up hypothesis: the prior innovations' Mahalanobis
+        # distances, capped at a gate (a miss or an outlier costs the gate).
+        nu = z[fi] - sub.uv
+        d2 = innovation_nis(nu, S[fi])
+        for k, u, d in zip(ks_found, used, d2.tolist()):
+            if u:
+                h = m.features[k].nis
+                h.append(d)
+                if len(h) > s.consistency_window:
+                    del h[0]
+        gate = s.ambiguity_gate_chi2
+        d2 = np.where(res.used, np.minimum(d2, gate), gate)
+        return True, -(0.5 * (d2.sum() + gate * (n - len(fi))))
+
+    @staticmethod
+    def _grow_impulse(state: State, motion_cfg: SlamConfig, dt: float, gain: float) -> None:
+        """The camera block's covariance as if the constant-velocity prediction over ``dt`` (with
+        ``motion_cfg``'s impulses) had taken impulses ``gain`` times larger: ``G P_n G^T`` added
+        ``gain^2 - 1`` times more."""
+        cd = state.cam_dim
+        _, _, G = f_and_dfdx_dfdn(state.x[:cd], dt)
+        state.add_camera_noise(G @ noise_covariance(dt, motion_cfg, math.sqrt(gain * gain - 1.0)) @ G.T)
+
+    def votes(self, features: list[MapFeature], ks: np.ndarray, edged: np.ndarray | None = None) -> np.ndarray:
+        """Each match's vote for a 1-point hypothesis: its feature's reliability (MapFeature, at
+        most 1); a target corner placed by the target's fitted sides in this frame (``edged``
+        (m,)) votes ``known_vote``: it is within a few tenths of a pixel, and a map that drifted
+        with the camera agrees with itself and would outvote a small far target's corners."""
+        votes = np.array([features[k].reliability for k in ks], float)
+        if edged is not None:
+            votes[np.asarray(edged, bool)] = self.settings.known_vote
+        return votes
+
+    def known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray, uv_pred: np.ndarray) -> np.ndarray:
+        """A printed quadrilateral target whose corners' templates found at least three of them
+        is located by its fitted sides (as at the start), not by the templates: a template, cut
+        once at the start and warped by the estimated pose, carries that pose's error into every
+        match, and one cut from a small far view matches a near one a few pixels off or not at
+        all. A corner not found starts from its prediction ``uv_pred`` (m, 2); the sides may then
+        move the corners as far as at the start (startup.corners_by_edges), or they are
+        left to the templates. Returns which of ``feats`` (m,) it placed."""
+        placed = np.zeros(len(feats), bool)
+        rows = [j for j, f in enumerate(feats) if f.known]
+        target = self.target
+        if len(rows) != 4 or target is None or len(target.xyz) != 4:
+            return placed
+        rows.sort(key=lambda j: feats[j].id)
+        quad = z[rows]
+        found = np.isfinite(quad).all(axis=1)
+        if found.sum() < 3:
+            return placed
+        quad = np.where(found[:, None], quad, uv_pred[rows])
+        edged = corners_by_edges(self.cam, g, quad, self.settings.click_search_px)
+        if edged is not None:
+            z[rows] = edged
+            placed[rows] = True
+        return placed
