@@ -118,7 +118,8 @@ def write_map_csv(path: Path, slam: MonoSLAM, R_out_world: np.ndarray = np.eye(3
     point, inlier matches and searches. ``R_out_world``, ``scale``: the similarity (about the
     origin) that takes the filter's world to the one written (an IMU's scale and gravity)."""
     st = slam.state
-    Y = scale * slam.world_points() @ R_out_world.T
+    similar = scale != 1.0 or not np.array_equal(R_out_world, np.eye(3))
+    Y = scale * slam.world_points() @ R_out_world.T if similar else slam.world_points()
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["id", "kind", "x", "y", "z", *[f"P{i}{j}" for i in range(3) for j in range(3)], "first_frame",
@@ -129,7 +130,8 @@ def write_map_csv(path: Path, slam: MonoSLAM, R_out_world: np.ndarray = np.eye(3
             if st.kinds[k] == INVERSE_DEPTH:
                 _, J = inverse_depth.to_point(st.feature(k), st.anchors[k])
                 P = J @ P @ J.T
-            P = scale**2 * R_out_world @ P @ R_out_world.T
+            if similar:
+                P = scale**2 * R_out_world @ P @ R_out_world.T
             w.writerow([feat.id, FEATURE_NAMES[st.kinds[k]], *map(repr, map(float, Y[k])), *map(repr, map(float, P.ravel())),
                         feat.first_frame, int(feat.known), feat.successes, feat.attempts])
 
@@ -313,13 +315,14 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
                   "slam: the IMU cannot give the scale (too short a run): the scale stays arbitrary")
     if times:
         T = np.array(poses)
-        T[:, :3, :3] = R_out @ T[:, :3, :3]
-        T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
+        if slam.scale_source == "imu":
+            T[:, :3, :3] = R_out @ T[:, :3, :3]
+            T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
         write_trajectory(out / "trajectory.tum", np.array(times), T,
                          header="MonoSLAM camera-to-world poses (optical frame), TUM order")
     else:
         (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
-    write_map_csv(out / "map.csv", slam, R_out, s_out)
+    write_map_csv(out / "map.csv", slam, *((R_out, s_out) if slam.scale_source == "imu" else ()))
     if save_map is not None:
         map_io.save_map(save_map, slam)
     per_frame = [asdict(s) for s in slam.stats]
