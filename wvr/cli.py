@@ -468,6 +468,9 @@ def cmd_slam(args) -> int:
     if args.measure is not None:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
+        from runtime.slam.map_io import check_map_path
+
+        check_map_path(args.save_map)
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out, kind="slam") as out:    # checked before the run, INCOMPLETE until it ends
         r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, cfg=cfg, settings=settings,
