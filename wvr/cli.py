@@ -483,7 +483,7 @@ def cmd_slam(args) -> int:
              if r.frame_gaps else "")
           + (f"; IMU: {r.imu['gaps']} gaps, {r.imu['spikes']} spikes, {r.imu['non_finite']} bad samples"
              if r.imu.get("rows") and (r.imu["gaps"] or r.imu["spikes"] or r.imu["non_finite"]) else ""))
-    if r.imu_clock_offset_s is not None:
+    if r.imu_clock_offset_s is not None and r.imu_frames > 0:
         print(f"IMU clock offset {1000 * r.imu_clock_offset_s:.1f} +- {1000 * r.imu_clock_offset_sd_s:.1f} ms "
               "(estimated; a sample stamped t was taken at t - offset on the camera's clock)")
     if args.map and r.first_localised_s is None:

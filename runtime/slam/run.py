@@ -209,6 +209,26 @@ def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[s
                                  "moving sideways over a textured scene")
 
 
+def imu_notes(seq, slam: MonoSLAM) -> None:
+    """Count the rows imu.txt's reader dropped with the filter's own (stats.json's ``imu``) and
+    say them; say when the IMU's samples cover none of the frames (another clock, or another
+    recording), so that the run goes on camera only knowingly."""
+    imu, c = seq.imu, slam.imu.counts
+    d = imu.dropped
+    if d:
+        c.rows += sum(d.values())
+        c.non_finite += d.get("non_finite", 0)
+        c.out_of_order += d.get("duplicate", 0) + d.get("out_of_order", 0)
+        slam.messages.append("slam: imu.txt: " + ", ".join(f"{v} {k.replace('_', ' ')} rows" for k, v in d.items())
+                             + " dropped")
+    t = seq.timestamps
+    if not len(imu.t):
+        slam.messages.append(f"slam: {seq.root}/imu.txt holds no samples: camera only")
+    elif imu.t[-1] < t[0] or imu.t[0] > t[-1]:
+        slam.messages.append(f"slam: imu.txt's samples ({imu.t[0]:.3f}-{imu.t[-1]:.3f} s) cover none of the frames "
+                             f"({t[0]:.3f}-{t[-1]:.3f} s): camera only; check that both are stamped by one clock")
+
+
 def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = None, video: bool = False,
              cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings(), progress: bool = True,
              save_map: str | Path | None = None, map_path: str | Path | None = None, seed: int = 0) -> SlamRun:
@@ -235,6 +255,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     writer = None
     slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
     if seq.imu is not None:
+        imu_notes(seq, slam)
         slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
     times, poses = [], []
     skipped = 0
