@@ -468,6 +468,9 @@ def cmd_slam(args) -> int:
     if args.measure is not None:
         settings = settings.with_measure(args.measure)
     if args.save_map is not None:
+        from runtime.slam.map_io import check_map_path
+
+        check_map_path(args.save_map)
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out, kind="slam") as out:    # checked before the run, INCOMPLETE until it ends
         r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, cfg=cfg, settings=settings,
@@ -480,7 +483,7 @@ def cmd_slam(args) -> int:
              if r.frame_gaps else "")
           + (f"; IMU: {r.imu['gaps']} gaps, {r.imu['spikes']} spikes, {r.imu['non_finite']} bad samples"
              if r.imu.get("rows") and (r.imu["gaps"] or r.imu["spikes"] or r.imu["non_finite"]) else ""))
-    if r.imu_clock_offset_s is not None:
+    if r.imu_clock_offset_s is not None and r.imu_frames > 0:
         print(f"IMU clock offset {1000 * r.imu_clock_offset_s:.1f} +- {1000 * r.imu_clock_offset_sd_s:.1f} ms "
               "(estimated; a sample stamped t was taken at t - offset on the camera's clock)")
     if args.map and r.first_localised_s is None:
@@ -492,6 +495,17 @@ def cmd_slam(args) -> int:
 
 #: eval warns when fewer than this share of the estimated poses have a ground-truth pose.
 MIN_COVERAGE = 0.9
+
+
+def _default_alignment(result: Path) -> str:
+    """The alignment a run's stats.json scale calls for: none where a target or a saved map fixed
+    the world's frame and scale, se3 where the scale is metric but the frame the first camera's
+    (depth, imu), sim3 where the scale is arbitrary."""
+    try:
+        scale = json.loads((result / "stats.json").read_text()).get("totals", {}).get("scale", "target")
+    except (OSError, ValueError, AttributeError):
+        scale = "target"
+    return {"arbitrary": "sim3", "depth": "se3", "imu": "se3"}.get(scale, "none")
 
 
 def cmd_eval(args) -> int:
@@ -518,8 +532,11 @@ def cmd_eval(args) -> int:
     if e.matched < MIN_COVERAGE * len(est):
         print(f"warning: the ground truth covers only {e.matched} of the {len(est)} estimated poses "
               f"({100 * e.matched / len(est):.0f}%); every figure below describes that part only", file=sys.stderr)
-    print(f"ATE (no alignment): RMSE {100 * e.ate_rmse_m:.2f} cm, max {100 * e.ate_max_m:.2f} cm")
-    print(f"ATE (SE3-aligned):  RMSE {100 * e.ate_aligned_rmse_m:.2f} cm, max {100 * e.ate_aligned_max_m:.2f} cm")
+    align = args.align or _default_alignment(result)
+    for name, label in (("none", "no alignment"), ("se3", "SE3-aligned"), ("sim3", "Sim3-aligned")):
+        rmse, worst = e.ate(name)
+        print(f"{'*' if name == align else ' '} ATE ({label}):{' ' * (14 - len(label))}RMSE {100 * rmse:.2f} cm, "
+              f"max {100 * worst:.2f} cm" + (f", scale x{e.sim3_scale:.4f}" if name == "sim3" else ""))
     if math.isfinite(e.rpe_trans_rmse_m):
         print(f"RPE over {e.rpe_delta_s:g} s: {100 * e.rpe_trans_rmse_m:.2f} cm, {e.rpe_rot_rmse_deg:.2f} deg RMSE")
     else:
@@ -1092,6 +1109,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
+    ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
+                     "default from the run's scale: none after a target or a saved map, se3 after a depth or IMU "
+                     "scale, sim3 when arbitrary)")
     ev2.set_defaults(func=cmd_eval)
     cv = sub.add_parser("convert", help="write a public data set (EuRoC, KITTI odometry) as a sequence folder in our layout")
     cvsub = cv.add_subparsers(dest="format", metavar="FORMAT", required=True)

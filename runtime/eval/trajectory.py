@@ -1,12 +1,14 @@
 """Trajectory metrics: absolute trajectory error (metric, no alignment, since the target fixes
-the frame; and after a rigid SE(3) alignment), relative pose error, as evo reports them, and
-rotation errors. For scoring runs against ground truth; nothing on the control path uses it."""
+the frame; after a rigid SE(3) alignment; and after a similarity Sim(3), for a run whose scale
+is arbitrary), relative pose error, as evo reports them, and rotation errors. The alignments are
+evo's Umeyama. For scoring runs against ground truth; nothing on the control path uses it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from evo.core.geometry import GeometryException, umeyama_alignment
 from scipy.spatial.transform import Rotation
 
 from ..sequence import Trajectory
@@ -22,6 +24,18 @@ class TrajectoryErrors:
     rpe_trans_rmse_m: float       # over ``rpe_delta_s``
     rpe_rot_rmse_deg: float
     rpe_delta_s: float
+    ate_sim3_rmse_m: float = float("nan")   # after the similarity that best maps the estimate onto the truth
+    ate_sim3_max_m: float = float("nan")
+    sim3_scale: float = float("nan")        # that similarity's scale: truth units per estimate unit
+
+    def ate(self, align: str) -> tuple[float, float]:
+        """(RMSE, max), m, of the ATE after ``align``: "none", "se3" or "sim3"."""
+        return {"none": (self.ate_rmse_m, self.ate_max_m), "se3": (self.ate_aligned_rmse_m, self.ate_aligned_max_m),
+                "sim3": (self.ate_sim3_rmse_m, self.ate_sim3_max_m)}[align]
+
+
+#: The alignments an ATE can be taken after.
+ALIGNMENTS = ("none", "se3", "sim3")
 
 
 def associate(est: Trajectory, gt: Trajectory, max_dt: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
@@ -37,13 +51,21 @@ def associate(est: Trajectory, gt: Trajectory, max_dt: float = 0.005) -> tuple[n
     return np.flatnonzero(ok), j[ok]
 
 
+def align_sim3(A: np.ndarray, B: np.ndarray, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) minimising sum |s R A_i + t - B_i|^2 (Umeyama, evo's; s = 1 without scale).
+    A, B : (n, 3). Points all on one spot or line give R as best it can (evo refuses them)."""
+    try:
+        R, t, s = umeyama_alignment(np.asarray(A, float).T, np.asarray(B, float).T, with_scale)
+    except GeometryException:
+        R, s = np.eye(3), 1.0
+        t = B.mean(axis=0) - A.mean(axis=0)
+    return R, np.asarray(t, float), float(s)
+
+
 def align_se3(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) minimising sum |R A_i + t - B_i|^2 (Umeyama without scale). A, B : (n, 3)."""
-    ca, cb = A.mean(axis=0), B.mean(axis=0)
-    U, _, Vt = np.linalg.svd((B - cb).T @ (A - ca))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    return R, cb - R @ ca
+    R, t, _ = align_sim3(A, B, with_scale=False)
+    return R, t
 
 
 def trajectory_errors(est: Trajectory, gt: Trajectory, rpe_delta_s: float = 1.0) -> TrajectoryErrors:
@@ -59,6 +81,8 @@ def trajectory_errors(est: Trajectory, gt: Trajectory, rpe_delta_s: float = 1.0)
     e = np.linalg.norm(pe - pg, axis=1)
     R, t = align_se3(pe, pg)
     ea = np.linalg.norm(pe @ R.T + t - pg, axis=1)
+    Rs, ts, scale = align_sim3(pe, pg)
+    es = np.linalg.norm(scale * pe @ Rs.T + ts - pg, axis=1)
     Te, Tg = est.T_world_cam()[ie], gt.T_world_cam()[ig]
     te = est.t[ie]
     k = np.searchsorted(te, te + rpe_delta_s)
@@ -72,7 +96,7 @@ def trajectory_errors(est: Trajectory, gt: Trajectory, rpe_delta_s: float = 1.0)
         dr_err.append(np.degrees(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec())))
     rms = lambda v: float(np.sqrt(np.mean(np.square(v)))) if len(v) else float("nan")  # noqa: E731
     return TrajectoryErrors(len(ie), rms(e), float(e.max()), rms(ea), float(ea.max()), rms(dt_err), rms(dr_err),
-                            rpe_delta_s)
+                            rpe_delta_s, rms(es), float(es.max()), scale)
 
 
 def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:

@@ -51,13 +51,16 @@ def _read_lines(path: Path, what: str) -> list[tuple[int, str]]:
     return out
 
 
-def _read_table(path: str | Path, columns: tuple[str, ...], what: str) -> tuple[np.ndarray, list[int]]:
+def _read_table(path: str | Path, columns: tuple[str, ...], what: str,
+                dropped: dict[str, int] | None = None) -> tuple[np.ndarray, list[int]]:
     """Read a file of ``len(columns)`` numbers per line.
 
     Returns the (N, len(columns)) float array and the file line number of each row (for later
-    messages). Blank and '#' lines are skipped; a line with the wrong count of fields, a field
-    that is not a number, a non-finite number, or a timestamp not after the previous one is an
-    error naming the line. The first column is the timestamp.
+    messages). Blank and '#' lines are skipped; a line with the wrong count of fields or a field
+    that is not a number is an error naming the line. A non-finite number, or a timestamp not
+    after the previous one, is too, unless ``dropped`` is given: then the row is dropped and
+    counted there ("non_finite", "duplicate", "out_of_order"), as a sensor log's glitches are.
+    The first column is the timestamp.
     """
     path = Path(path)
     layout = " ".join(columns)
@@ -74,11 +77,18 @@ def _read_table(path: str | Path, columns: tuple[str, ...], what: str) -> tuple[
             col = columns[fields_.index(bad)]
             raise SequenceError(f"{path}:{n}: {col} = {bad!r} is not a number; each line is "
                                 f"'{layout}'") from None
-        for col, v in zip(columns, row):
-            if not math.isfinite(v):
-                raise SequenceError(f"{path}:{n}: {col} = {v} is not finite; write a finite number "
-                                    f"or remove the line")
+        bad = next(((col, v) for col, v in zip(columns, row) if not math.isfinite(v)), None)
+        if bad is not None:
+            if dropped is not None:
+                dropped["non_finite"] = dropped.get("non_finite", 0) + 1
+                continue
+            raise SequenceError(f"{path}:{n}: {bad[0]} = {bad[1]} is not finite; write a finite number "
+                                f"or remove the line")
         if not row[0] > prev_t:
+            if dropped is not None:
+                key = "duplicate" if row[0] == prev_t else "out_of_order"
+                dropped[key] = dropped.get(key, 0) + 1
+                continue
             raise SequenceError(f"{path}:{n}: timestamp {row[0]!r} is not after {prev_t!r} on line "
                                 f"{prev_n}; lines must be in increasing time order (sort the file)")
         prev_t, prev_n = row[0], n
@@ -146,9 +156,12 @@ def _trajectory(t, poses) -> Trajectory:
 # ---------------------------------------------------------------------------------------------
 
 def read_imu(path: str | Path) -> ImuLog:
-    """Read imu.txt: "timestamp wx wy wz ax ay az" (rad/s, m/s^2, camera frame) per line."""
-    a, _ = _read_table(path, IMU_COLUMNS, "IMU log (timestamp wx wy wz ax ay az)")
-    return ImuLog(a[:, 0], a[:, 1:4], a[:, 4:7])
+    """Read imu.txt: "timestamp wx wy wz ax ay az" (rad/s, m/s^2, camera frame) per line. Rows
+    with a non-finite number, a repeated or an earlier timestamp are dropped and counted
+    (``ImuLog.dropped``): a sensor's glitches, not a broken file."""
+    dropped: dict[str, int] = {}
+    a, _ = _read_table(path, IMU_COLUMNS, "IMU log (timestamp wx wy wz ax ay az)", dropped)
+    return ImuLog(a[:, 0], a[:, 1:4], a[:, 4:7], dropped)
 
 
 def write_imu(path: str | Path, t, gyro, accel, header: str | None = None) -> None:

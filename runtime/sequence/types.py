@@ -5,7 +5,7 @@ writing are :mod:`.textfiles`, :mod:`.reader` and :mod:`.writer`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -187,6 +187,8 @@ class ImuLog:
     t: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
+    #: Rows the reader dropped, by kind ("non_finite", "duplicate", "out_of_order").
+    dropped: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.t = _as_times(self.t)

@@ -238,7 +238,9 @@ class ImuStream:
         i0 = int(np.searchsorted(r[:, 0], t0, side="right")) - 1
         i1 = int(np.searchsorted(r[:, 0], t1, side="right"))
         seg = r[i0:i1]
-        edges = np.concatenate([[t0], seg[1:, 0], [t1]])
+        # From the sample holding at t0 (not t0 itself): a sample from before a dropout must not
+        # stand for the motion through it.
+        edges = np.concatenate([[min(seg[0, 0], t0)], seg[1:, 0], [t1]])
         if np.diff(edges).max() > self.settings.imu_max_gap_s:
             self.counts.gaps += 1
             return None

@@ -64,11 +64,25 @@ class SavedMap:
         return State(np.concatenate([x_v, self.y]), P, cam_dim, self.kinds, self.anchors)
 
 
-def save_map(path: str | Path, slam) -> Path:
-    """Write the SLAM's current map to ``path`` (``.npz`` added if missing); returns the path."""
+#: A saved map's numbers beyond these are not a map (metres and their variances).
+MAX_MAP_VALUE = 1e6
+MAX_MAP_VARIANCE = 1e12
+
+
+def check_map_path(path: str | Path) -> Path:
+    """The path a map is saved to, exactly as given: a file name ending in .npz, not a folder.
+    Raises :class:`MapFileError` naming the fix."""
     path = Path(path)
+    if path.is_dir():
+        raise MapFileError(f"--save-map {path}: is a folder; give a file name ending in .npz (e.g. {path / 'map.npz'})")
     if path.suffix != ".npz":
-        path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        raise MapFileError(f"--save-map {path}: a map file's name ends in .npz; give {path.name}.npz or another .npz name")
+    return path
+
+
+def save_map(path: str | Path, slam) -> Path:
+    """Write the SLAM's current map to ``path`` (a .npz name, :func:`check_map_path`); returns it."""
+    path = check_map_path(path)
     st = slam.state
     feats = slam.features
     cd = st.cam_dim
@@ -113,12 +127,17 @@ def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedM
     if not path.is_file():
         raise MapFileError(f"{path}: no such map file; give the file wvr slam --save-map wrote")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):          # np.save's single array, renamed
+            raise MapFileError(f"{path}: not a wvr SLAM map (a single NumPy array, not a map archive); give a file "
+                               "wvr slam --save-map wrote")
+        with z:
             if "header" not in z.files:
                 raise MapFileError(f"{path}: not a wvr SLAM map (no header); give a file wvr slam --save-map wrote")
             header = json.loads(bytes(z["header"]).decode())
-            if header.get("format") != FORMAT:
-                raise MapFileError(f"{path}: not a wvr SLAM map (format {header.get('format')!r})")
+            if not isinstance(header, dict) or header.get("format") != FORMAT:
+                fmt = header.get("format") if isinstance(header, dict) else type(header).__name__
+                raise MapFileError(f"{path}: not a wvr SLAM map (format {fmt!r}); give a file wvr slam --save-map wrote")
             version = header.get("version")
             if not isinstance(version, int) or version > VERSION:
                 raise MapFileError(f"{path}: map format version {version!r} is newer than this wvr reads ({VERSION}); "
@@ -164,6 +183,10 @@ def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedM
         saved = SavedMap(a["y"].astype(float), a["P"].astype(float), kinds, a["anchors"].astype(float), feats, T, cam)
         if not (np.isfinite(saved.y).all() and np.isfinite(saved.P).all()):
             raise ValueError("non-finite")
-    except (KeyError, ValueError, IndexError, TypeError) as e:
+        if np.abs(saved.y).max(initial=0.0) > MAX_MAP_VALUE or np.abs(saved.P).max(initial=0.0) > MAX_MAP_VARIANCE:
+            raise ValueError(f"values beyond {MAX_MAP_VALUE:g} or variances beyond {MAX_MAP_VARIANCE:g}")
+        if (np.diag(saved.P) < 0).any() or not np.allclose(saved.P, saved.P.T, rtol=1e-6, atol=1e-12):
+            raise ValueError("a covariance that is not symmetric with non-negative variances")
+    except (KeyError, ValueError, IndexError, TypeError, OverflowError, AttributeError) as e:
         raise MapFileError(f"{path}: the map's arrays are inconsistent ({e}); save the map again") from None
     return saved

@@ -4,8 +4,9 @@ annotated frames, video.mp4 and a saved map."""
 from __future__ import annotations
 
 import csv
+import itertools
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,7 @@ from kinematics.camera import CameraIntrinsics, undistort
 from ..datasets import open_any
 from ..sequence import SequenceError, write_trajectory
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
+from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
 from .measurement import predict, predict_points
@@ -55,6 +57,14 @@ class SlamRun:
     #: that state): an IMU sample stamped t was taken at camera time t - offset.
     imu_clock_offset_s: float | None = None
     imu_clock_offset_sd_s: float | None = None
+    #: What fixed the map's unit: "target", "map", "depth" or "arbitrary" (wvr eval's default alignment).
+    scale: str = "target"
+    #: Frames before the start (natural features: no view to start from yet), given no pose, and why.
+    frames_before_start: int = 0
+    start_waits: dict = field(default_factory=dict)
+    #: The IMU's estimate of a natural start's scale (metres per map unit) and gravity, over the
+    #: first 3 s of the run and over all of it, and whether it was used (scale_from_imu).
+    imu_scale: dict | None = None
 
 
 def _clock_offset(state) -> dict:
@@ -102,12 +112,14 @@ def _annotate(image: np.ndarray, slam: MonoSLAM) -> np.ndarray:
     return img
 
 
-def write_map_csv(path: Path, slam: MonoSLAM) -> None:
+def write_map_csv(path: Path, slam: MonoSLAM, R_out_world: np.ndarray = np.eye(3), scale: float = 1.0) -> None:
     """One row per map feature: its id, kind, point (world, m) and the point's 3x3 covariance
     (an inverse-depth feature's through its conversion Jacobian), first frame, whether a target
-    point, inlier matches and searches."""
+    point, inlier matches and searches. ``R_out_world``, ``scale``: the similarity (about the
+    origin) that takes the filter's world to the one written (an IMU's scale and gravity)."""
     st = slam.state
-    Y = slam.world_points()
+    similar = scale != 1.0 or not np.array_equal(R_out_world, np.eye(3))
+    Y = scale * slam.world_points() @ R_out_world.T if similar else slam.world_points()
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["id", "kind", "x", "y", "z", *[f"P{i}{j}" for i in range(3) for j in range(3)], "first_frame",
@@ -118,8 +130,103 @@ def write_map_csv(path: Path, slam: MonoSLAM) -> None:
             if st.kinds[k] == INVERSE_DEPTH:
                 _, J = inverse_depth.to_point(st.feature(k), st.anchors[k])
                 P = J @ P @ J.T
+            if similar:
+                P = scale**2 * R_out_world @ P @ R_out_world.T
             w.writerow([feat.id, FEATURE_NAMES[st.kinds[k]], *map(repr, map(float, Y[k])), *map(repr, map(float, P.ravel())),
                         feat.first_frame, int(feat.known), feat.successes, feat.attempts])
+
+
+#: The IMU's scale is used when the camera accelerated this much (RMS, m/s^2) and the estimate's
+#: relative standard deviation is under IMU_SCALE_MAX_SIGMA.
+IMU_SCALE_MIN_EXCITATION = 0.2
+IMU_SCALE_MAX_SIGMA = 0.03
+IMU_SCALE_EARLY_S = 3.0
+
+
+def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
+    """The scale and gravity of a natural start's map from the camera's poses (n,) s, (n, 4, 4) and
+    the sequence's IMU (imu_scale.estimate_scale): over the first IMU_SCALE_EARLY_S seconds and over
+    the whole run; the whole run's is used when observable. None when the run is too short."""
+    from .imu_scale import estimate_scale, gravity_aligned
+
+    R, p = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
+    full = estimate_scale(t, p, R, imu.t, imu.gyro, imu.accel)
+    if full is None:
+        return None
+    early = t <= t[0] + IMU_SCALE_EARLY_S
+    first = estimate_scale(t[early], p[early], R[early], imu.t, imu.gyro, imu.accel)
+    usable = full.excitation >= IMU_SCALE_MIN_EXCITATION and full.sigma_rel <= IMU_SCALE_MAX_SIGMA
+    said = (f"scale from the IMU: {full.scale:.4g} m per map unit (+- {100 * full.sigma_rel:.1f}%, the camera's "
+            f"acceleration {full.excitation:.2f} m/s^2 RMS)" + ("" if usable else
+            "; too weakly observed, the scale stays arbitrary"))
+    return {"usable": bool(usable), "scale": full.scale, "sigma_rel": full.sigma_rel, "excitation_m_s2": full.excitation,
+            "g_world": full.g_world.tolist(), "accel_bias": full.accel_bias.tolist(),
+            "R_up_world": gravity_aligned(full.g_world).tolist(),
+            "scale_first_3s": first.scale if first is not None else None,
+            "sigma_rel_first_3s": first.sigma_rel if first is not None else None, "said": said}
+
+
+def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
+    """Feed frames (the first, ``f``, then ``frames``: an iterator of (index, Frame)) to a natural
+    start-up: the depth start where the sequence has depth images, else the two-view start.
+    Returns (NaturalStart, [(index, Frame)] from its reference frame to the accepting one).
+    Counts each reason it waited in ``waits``. Raises SlamStartError when the frames run out."""
+    from .natural_start import StartWait, TwoViewStart, depth_start
+
+    two_view = TwoViewStart(slam.cam)
+    kept: list = []
+    said = None
+    entry = (0, f)
+    while True:
+        i, f = entry
+        if f.image is None:
+            waits["unreadable frame"] = waits.get("unreadable frame", 0) + 1
+            kept.append(entry)                      # replayed as a skipped frame
+        else:
+            g = grey(f.image)
+            depth = seq.depth(i) if getattr(seq, "depth_paths", None) is not None else None
+            if depth is not None:
+                r = depth_start(slam.cam, g, depth, i)
+                kept = [entry]
+            else:
+                r = two_view.add(g, i, f.t)
+                kept = [e for e in kept if two_view.ref_frame is not None and e[0] >= two_view.ref_frame] + [entry]
+            if not isinstance(r, StartWait):
+                return r, [e for e in kept if e[0] >= r.frame]
+            key = r.reason.split(" (")[0].split(":")[0]
+            waits[key] = waits.get(key, 0) + 1
+            if progress and key != said and key != "reference frame taken; waiting for parallax":
+                print(f"slam: waiting to start at frame {i}: {r.reason}")
+                said = key
+        try:
+            entry = next(frames)
+        except StopIteration:
+            entry = None
+        if entry is None or entry[0] >= n:
+            why = max(waits, key=waits.get) if waits else "no frames"
+            raise SlamStartError(f"{seq.root}: no start could be made from natural features in {i + 1} frames "
+                                 f"(mostly: {why}); give a target.toml or a saved map (--map), or record the camera "
+                                 "moving sideways over a textured scene")
+
+
+def imu_notes(seq, slam: MonoSLAM) -> None:
+    """Count the rows imu.txt's reader dropped with the filter's own (stats.json's ``imu``) and
+    say them; say when the IMU's samples cover none of the frames (another clock, or another
+    recording), so that the run goes on camera only knowingly."""
+    imu, c = seq.imu, slam.imu.counts
+    d = imu.dropped
+    if d:
+        c.rows += sum(d.values())
+        c.non_finite += d.get("non_finite", 0)
+        c.out_of_order += d.get("duplicate", 0) + d.get("out_of_order", 0)
+        slam.messages.append("slam: imu.txt: " + ", ".join(f"{v} {k.replace('_', ' ')} rows" for k, v in d.items())
+                             + " dropped")
+    t = seq.timestamps
+    if not len(imu.t):
+        slam.messages.append(f"slam: {seq.root}/imu.txt holds no samples: camera only")
+    elif imu.t[-1] < t[0] or imu.t[0] > t[-1]:
+        slam.messages.append(f"slam: imu.txt's samples ({imu.t[0]:.3f}-{imu.t[-1]:.3f} s) cover none of the frames "
+                             f"({t[0]:.3f}-{t[-1]:.3f} s): camera only; check that both are stamped by one clock")
 
 
 def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = None, video: bool = False,
@@ -137,25 +244,41 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         raise SequenceError(f"{seq.root}/rgb.txt lists no images; a sequence needs at least one frame")
     check_lens_invertible(seq.camera)
     saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
-    if saved is None and seq.target is None:
-        raise SequenceError(f"{seq.root}: no target.toml; SLAM starts from known points that fix the world frame "
-                            "(or from a saved map: --map FILE)")
+    natural = saved is None and seq.target is None
+    if natural and seq.imu is not None and settings.use_imu:
+        # The map's unit is arbitrary or the depth's, and its frame the first camera's, which the
+        # IMU's gravity does not know: camera only (the IMU's scale and gravity are not used yet).
+        settings = replace(settings, use_imu=False)
+        if progress:
+            print("slam: natural start: the IMU is not used (camera only)")
     out = Path(out)
     writer = None
     slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
     if seq.imu is not None:
+        imu_notes(seq, slam)
         slam.add_imu(np.column_stack([seq.imu.t, seq.imu.gyro, seq.imu.accel]))
     times, poses = [], []
     skipped = 0
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
-    frames = seq.frames()
+    frames = enumerate(seq.frames())
     said = 0
+    waits: dict[str, int] = {}
     # The start comes before the progress bar: a target that cannot start SLAM is one line.
-    f = next(frames)
+    i0, f = next(frames)
     if saved is not None:
         slam.start_from_map(saved, f.t)
         if f.image is not None:
             slam.process(f.image, f.t)
+    elif natural:
+        # Frames are taken until a start can be made; those from the start's reference frame on
+        # are replayed, those before it get no pose.
+        start, replay = wait_for_natural_start(slam, seq, f, frames, n, waits, progress)
+        i0, f = replay[0]
+        slam.start_natural(f.image, f.t, start)
+        frames = itertools.chain(replay[1:], frames)
+        if progress:
+            print(f"slam: started at frame {i0} (t = {f.t:.3f} s) from {len(slam.features)} natural features, "
+                  f"scale: {start.scale}" + (f"; {i0} frames before it" if i0 else ""))
     else:
         if f.image is None:
             raise SlamStartError(f"{f.path}: the first frame cannot be read ({f.problem}); SLAM needs it to start")
@@ -166,10 +289,10 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
     if video:
         (out / "video").mkdir(exist_ok=True)
-    bar = progress_bar(total=n, initial=1, desc="slam", unit="frame", disable=not progress)
-    for i in range(n):
-        if i > 0:
-            f = next(frames)
+    bar = progress_bar(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
+    for i in range(i0, n):
+        if i > i0:
+            _, f = next(frames)
             bar.update(1)
             if f.image is None:
                 slam.skip(f.t, f.problem or "unreadable")
@@ -201,12 +324,26 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     bar.close()
     if writer is not None:
         writer.release()
+    # A natural start's arbitrary unit, made metric (and the frame turned upright) by the IMU.
+    R_out, s_out, imu_scale = np.eye(3), 1.0, None
+    if natural and slam.scale_source == "arbitrary" and seq.imu is not None and len(times) > 2:
+        imu_scale = scale_from_imu(np.array(times), np.array(poses), seq.imu)
+        if imu_scale is not None and imu_scale["usable"]:
+            R_out, s_out = np.array(imu_scale["R_up_world"]), imu_scale["scale"]
+            slam.scale_source = "imu"
+        if progress:
+            print("slam: " + imu_scale["said"] if imu_scale is not None else
+                  "slam: the IMU cannot give the scale (too short a run): the scale stays arbitrary")
     if times:
-        write_trajectory(out / "trajectory.tum", np.array(times), np.array(poses),
+        T = np.array(poses)
+        if slam.scale_source == "imu":
+            T[:, :3, :3] = R_out @ T[:, :3, :3]
+            T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
+        write_trajectory(out / "trajectory.tum", np.array(times), T,
                          header="MonoSLAM camera-to-world poses (optical frame), TUM order")
     else:
         (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
-    write_map_csv(out / "map.csv", slam)
+    write_map_csv(out / "map.csv", slam, *((R_out, s_out) if slam.scale_source == "imu" else ()))
     if save_map is not None:
         map_io.save_map(save_map, slam)
     per_frame = [asdict(s) for s in slam.stats]
@@ -215,7 +352,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     first = next((s.t for s in slam.stats if not s.lost), None)     # first frame in the map
     lost_frames = sum(1 for s in slam.stats if s.lost and first is not None and s.t > first) if first is not None \
         else len(slam.stats)
-    dt = np.diff(seq.timestamps[:n])
+    dt = np.diff(seq.timestamps[i0:n])
     gaps = int((dt > 1.5 * np.median(dt)).sum()) if len(dt) else 0
     result = SlamRun(
         frames=len(slam.stats), skipped=skipped, features=len(slam.features),
@@ -230,6 +367,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
         imu_frames=sum(1 for s in proc if s.imu), frame_gaps=gaps, longest_interval_s=float(dt.max()) if len(dt) else 0.0,
         imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
-        **_clock_offset(slam.state))
+        **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits,
+        imu_scale={k: v for k, v in imu_scale.items() if k != "said"} if imu_scale else None)
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
     return result

@@ -114,6 +114,7 @@ class MonoSLAM:
         self.target_contrast = 0.0              # the target's print contrast in the first image
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave
         self.noise = ImageNoise(settings.noise_every, settings.match_score)
+        self.scale_source = "target"            # what fixed the map's unit: target, map, depth, imu or arbitrary
 
     # -------------------------------------------------------------- views
     @property
@@ -268,6 +269,35 @@ class MonoSLAM:
         self.stats.append(FrameStats(0, t, matched=len(ref.xyz), map_size=len(ref.xyz), hypotheses=len(self._tracks)))
         return ref
 
+    def start_natural(self, image: np.ndarray, t: float, ns) -> None:
+        """Start from natural features (natural_start.NaturalStart of this frame): the camera at
+        the world's origin, fixed (the first camera's frame is the world's, the gauge), the start's
+        points mapped as point features with their covariances, its velocity the two views'. No
+        target: nothing is watched for or sought again but the map."""
+        g = grey(image)
+        hyp = PoseHypothesis(np.eye(3), np.zeros(3), np.zeros((6, 6)), 0.0, 0.0)
+        state = self._camera_state(hyp, t)
+        state.x[7:10] = ns.v_world
+        ph = patch_half(self.template_px)
+        feats = []
+        for X, C, uv in zip(ns.xyz, ns.xyz_cov, ns.uv):
+            tpl = extract_template(g, uv, self.template_px)
+            if tpl is None or float(np.std(tpl)) <= 2.0:
+                continue
+            state.add_feature(POINT, X, C, np.zeros((3, state.n)))
+            feats.append(MapFeature(len(feats), tpl, 0, np.zeros(3), patch=first_view_patch(g, uv, ph),
+                                    uv0=np.asarray(uv, float), R0=np.eye(3), normal=-X / np.linalg.norm(X),
+                                    last_seen=0))
+        if len(feats) < 3:
+            raise SlamStartError("the natural start's points have no usable appearance (a blank view)")
+        self.refined_target = None
+        self._tracks = [self._new_track(state, feats)]
+        self.scale_source = ns.scale
+        self.ids.next_id = len(feats)
+        self.frame = 0
+        self.t_prev = t
+        self.stats.append(FrameStats(0, t, matched=len(feats), map_size=len(feats), hypotheses=1))
+
     def start_from_map(self, saved, t: float) -> None:
         """Start from a saved map (map_io.SavedMap) with the camera unknown: the track begins
         lost and re-localises against the map at every frame until it is found, then continues
@@ -287,6 +317,7 @@ class MonoSLAM:
         self.ids.next_id = max((f.id for f in feats), default=-1) + 1
         self.frame = 0
         self.t_prev = t
+        self.scale_source = "map"
         self.stats.append(FrameStats(0, t, map_size=len(feats), lost=True))
 
     # -------------------------------------------------------------- per frame

@@ -67,7 +67,7 @@ def test_the_angle_a_normal_was_fitted_at_round_trips_and_an_older_map_has_none(
     try:
         for i, f in enumerate(slam.features):
             f.normal_view_deg = 10.0 + 1.5 * i
-        path = save_map(tmp_path / "m", slam)
+        path = save_map(tmp_path / "m.npz", slam)
         assert [f.normal_view_deg for f in load_map(path, CAM).features] == [10.0 + 1.5 * i for i in range(len(before))]
         # A map written before the fitted normals: the same file less that array.
         with np.load(path) as z:
@@ -80,7 +80,12 @@ def test_the_angle_a_normal_was_fitted_at_round_trips_and_an_older_map_has_none(
 
 
 def test_save_then_load_round_trips_every_array_and_record(slam, tmp_path):
-    path = save_map(tmp_path / "maps" / "bench", slam)
+    # The path is written exactly as given: a name without .npz, or a folder, is refused.
+    for bad in (tmp_path / "maps" / "bench", tmp_path):
+        with pytest.raises(MapFileError, match=r"\.npz"):
+            save_map(bad, slam)
+    assert not (tmp_path / "maps").exists()
+    path = save_map(tmp_path / "maps" / "bench.npz", slam)
     assert path == tmp_path / "maps" / "bench.npz" and path.is_file()
     assert [p.name for p in path.parent.iterdir()] == ["bench.npz"]          # no temporary left
     saved = load_map(path, CAM)
@@ -170,6 +175,21 @@ def bad_files(slam, tmp_path) -> dict:
     y[0] = np.nan
     write_npz(files["non-finite"], {**a, "y": y})
     files["missing"] = tmp_path / "missing.npz"
+    # Files that are not ours: an array saved by np.save and renamed, headers that are not a table.
+    files["npy"] = tmp_path / "array.npz"
+    with open(files["npy"], "wb") as fh:
+        np.save(fh, np.arange(5.0))
+    for name, value in (("list header", [1, 2]), ("null header", None)):
+        files[name] = tmp_path / f"{name.replace(' ', '_')}.npz"
+        write_npz(files[name], {**a, "header": np.frombuffer(json.dumps(value).encode(), np.uint8)})
+    files["negative variance"] = tmp_path / "negative_variance.npz"
+    P = a["P"].copy()
+    P[0, 0] = -1e6
+    write_npz(files["negative variance"], {**a, "P": P})
+    files["huge"] = tmp_path / "huge.npz"
+    y = a["y"].copy()
+    y[0] = 1e200
+    write_npz(files["huge"], {**a, "y": y})
     return files
 
 
@@ -189,6 +209,9 @@ def test_files_that_are_not_usable_maps_are_refused_in_one_line(slam, tmp_path):
         ("other format", r"not a wvr SLAM map \(format 'something-else'\)"),
         ("newer", rf"map format version {map_io.VERSION + 1} is newer than this wvr reads \({map_io.VERSION}\)"),
         ("missing", r"no such map file"),
+        ("npy", r"not a wvr SLAM map"),
+        ("list header", r"not a wvr SLAM map \(format 'list'\)"),
+        ("null header", r"not a wvr SLAM map \(format 'NoneType'\)"),
     ]:
         assert_refused(f[name], CAM, message)
         assert_refused(f[name], None, message)
@@ -203,6 +226,8 @@ def test_maps_of_another_camera_or_with_broken_arrays_are_refused_in_one_line(sl
     assert_refused(f["good"], fisheye, r"built with another camera \(model, .*k1")
     assert_refused(f["inconsistent"], CAM, r"the map's arrays are inconsistent")
     assert_refused(f["non-finite"], CAM, r"the map's arrays are inconsistent")
+    assert_refused(f["negative variance"], CAM, r"non-negative variances")
+    assert_refused(f["huge"], CAM, r"values beyond")
     assert load_map(f["good"]).camera == CAM            # without a camera to check against
 
 

@@ -1,0 +1,102 @@
+"""SLAM on real public footage, started anywhere (issue 50's table).
+
+For each sequence folder given (our TUM layout, a TUM RGB-D folder, a EuRoC ``mav0`` folder or
+its parent, a KITTI odometry sequence), ``wvr slam``'s engine runs camera only from whatever the
+sequence has (no target: a natural start) and every frame's pose is scored against the ground
+truth after a Sim(3) alignment (evo's Umeyama). Reported per sequence: the ATE RMSE (and without
+alignment where the scale is metric), frames lost, frames before the start, the scale source and
+the factor Sim(3) finds (1 for an exact metric scale), ms per frame (median, p99, max; one core,
+decoding excluded), beside the published figures of ORB-SLAM, PTAM and LSD-SLAM where they exist
+(keyframe trajectories, from Mur-Artal et al., ORB-SLAM, T-RO 2015, table III; their "X": lost).
+
+The data stay outside the repository (benchmarks/datasets.md says how to fetch them):
+
+    python benchmarks/bench_slam_real.py [FOLDER ...]
+
+with no folder, the environment's ``WVR_EUROC_MH01``, ``WVR_KITTI07`` and ``WVR_TUM`` (one or
+more TUM RGB-D folders separated by ``:``) are used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+#: Published keyframe ATE RMSE, cm (ORB-SLAM T-RO 2015, table III; None: lost or not reported).
+PUBLISHED_CM = {
+    "rgbd_dataset_freiburg1_xyz": {"ORB-SLAM": 0.90, "PTAM": 1.15, "LSD-SLAM": 9.00},
+    "rgbd_dataset_freiburg2_xyz": {"ORB-SLAM": 0.30, "PTAM": 0.20, "LSD-SLAM": 2.15},
+    "rgbd_dataset_freiburg1_floor": {"ORB-SLAM": 2.99, "PTAM": None, "LSD-SLAM": 38.07},
+    "rgbd_dataset_freiburg1_desk": {"ORB-SLAM": 1.69, "PTAM": None, "LSD-SLAM": 10.65},
+    "rgbd_dataset_freiburg2_desk": {"ORB-SLAM": 0.88, "PTAM": None, "LSD-SLAM": 4.57},
+}
+
+
+def run(folder: Path, max_frames: int | None = None) -> dict:
+    """One camera-only run over ``folder``: the scores of the table's row."""
+    from dataclasses import replace
+
+    from runtime.datasets import open_any
+    from runtime.eval import trajectory_errors
+    from runtime.sequence import read_trajectory
+    from runtime.slam.config import MapSettings
+    from runtime.slam.run import run_slam
+
+    seq = open_any(folder)
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "out"
+        r = run_slam(folder, out, max_frames=max_frames, settings=replace(MapSettings(), use_imu=False), progress=False)
+        stats = json.loads((out / "stats.json").read_text())
+        est = read_trajectory(out / "trajectory.tum")
+    e = trajectory_errors(est, seq.groundtruth) if seq.groundtruth is not None and len(est.t) > 1 else None
+    ms = np.array([1000 * f["seconds"] for f in stats["frames"][1:] if not f["skipped"] and f["seconds"] > 0])
+    return {"name": Path(seq.root).name if Path(seq.root).name != "mav0" else Path(seq.root).parent.name,
+            "frames": r.frames, "before_start": r.frames_before_start, "lost": r.lost_frames, "scale": r.scale,
+            "ate_sim3_cm": 100 * e.ate_sim3_rmse_m if e else float("nan"),
+            "ate_none_cm": 100 * e.ate_rmse_m if e else float("nan"),
+            "sim3_scale": e.sim3_scale if e else float("nan"),
+            "ms_median": float(np.median(ms)) if len(ms) else float("nan"),
+            "ms_p99": float(np.percentile(ms, 99)) if len(ms) else float("nan"),
+            "ms_max": float(ms.max()) if len(ms) else float("nan")}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("folders", nargs="*", type=Path)
+    p.add_argument("--max-frames", type=int)
+    a = p.parse_args()
+    folders = list(a.folders)
+    if not folders:
+        for var in ("WVR_EUROC_MH01", "WVR_KITTI07", "WVR_TUM"):
+            folders += [Path(v) for v in os.environ.get(var, "").split(":") if v]
+    if not folders:
+        print("no sequence: give folders or set WVR_EUROC_MH01, WVR_KITTI07, WVR_TUM (benchmarks/datasets.md)",
+              file=sys.stderr)
+        return 2
+    print("| sequence | frames (before start) | lost | scale (Sim3 factor) | ATE Sim3 cm | ATE none cm | "
+          "ms median / p99 / max | ORB-SLAM / PTAM / LSD-SLAM cm |")
+    print("|---|---|---|---|---|---|---|---|")
+    for folder in folders:
+        r = run(folder, a.max_frames)
+        pub = PUBLISHED_CM.get(r["name"])
+        pub_s = " / ".join("X" if pub[k] is None else f"{pub[k]:.2f}" for k in ("ORB-SLAM", "PTAM", "LSD-SLAM")) \
+            if pub else "-"
+        none = f"{r['ate_none_cm']:.2f}" if r["scale"] != "arbitrary" else "-"
+        print(f"| {r['name']} | {r['frames']} ({r['before_start']}) | {r['lost']} | {r['scale']} (x{r['sim3_scale']:.3f}) "
+              f"| {r['ate_sim3_cm']:.2f} | {none} | {r['ms_median']:.1f} / {r['ms_p99']:.1f} / {r['ms_max']:.1f} "
+              f"| {pub_s} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
