@@ -16,7 +16,8 @@ files each run writes, less what measures time:
 change: ``git worktree add /tmp/before COMMIT``) with this script, so the baseline can be made
 at any time. Recordings are made once, by the code being run, into ``$WVR_BENCH_CACHE/golden``
 (they are inputs, compared too: a change to the twin shows up as a changed recording).
-``compare`` prints every file that differs and exits 1 if any does.
+``compare`` prints every file that differs and exits 1 if any does (a JSON file whose every
+value is still there, with new fields beside them, is the same).
 """
 
 from __future__ import annotations
@@ -145,6 +146,27 @@ def _content(path: Path) -> str:
     return text
 
 
+def _subset(a, b) -> bool:
+    """Whether JSON value ``a`` is in ``b``: every key of a dict with the same value (new keys in
+    ``b``, a result's new fields, change nothing that was there); lists and values equal."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return all(k in b and _subset(v, b[k]) for k, v in a.items())
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_subset(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def _same(f_before: Path, f_after: Path) -> bool:
+    if not f_after.is_file():
+        return False
+    if f_before.suffix == ".json":
+        try:
+            return _subset(_strip(json.loads(f_before.read_text())), _strip(json.loads(f_after.read_text())))
+        except ValueError:
+            pass
+    return _content(f_before) == _content(f_after)
+
+
 def compare(before: Path, after: Path) -> int:
     """Every compared file of every run in ``before`` against ``after``; 1 if any differs."""
     differ = 0
@@ -152,7 +174,7 @@ def compare(before: Path, after: Path) -> int:
     for run in runs:
         files = sorted(f.relative_to(before / run) for f in (before / run).rglob("*")
                        if f.is_file() and f.suffix in COMPARED)
-        bad = [str(f) for f in files if not (after / run / f).is_file() or _content(before / run / f) != _content(after / run / f)]
+        bad = [str(f) for f in files if not _same(before / run / f, after / run / f)]
         new = sorted(str(f.relative_to(after / run)) for f in (after / run).rglob("*")
                      if f.is_file() and f.suffix in COMPARED and not (before / run / f.relative_to(after / run)).exists()) \
             if (after / run).is_dir() else []
