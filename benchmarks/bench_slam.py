@@ -50,12 +50,13 @@ REUSE = (("workbench-static", "sit-down"), ("kitchen-static", "kitchen-walk"))
 
 
 def recording(scenario: str, seed: int, scene_seed: int | None = None, camera=None, seconds: float | None = None,
-              name: str | None = None) -> Path:
+              name: str | None = None, depth: bool = False) -> Path:
     """The twin's recording of ``scenario`` (realistic camera and IMU, clicked target), made once
     and kept in the cache as ``name`` (default from the scenario and seeds); ``camera`` :
-    CameraIntrinsics (default the twin's), ``seconds`` (default the scenario's)."""
+    CameraIntrinsics (default the twin's), ``seconds`` (default the scenario's); ``depth``: with the twin's
+    depth images too."""
     if name is None:
-        name = f"{scenario}-s{seed}" + (f"-place{scene_seed}" if scene_seed is not None else "")
+        name = f"{scenario}-s{seed}" + (f"-place{scene_seed}" if scene_seed is not None else "") + ("-depth" if depth else "")
     path = CACHE / name
     if (path / "rgb.txt").exists() and not (path / "INCOMPLETE").exists():
         return path
@@ -67,7 +68,7 @@ def recording(scenario: str, seed: int, scene_seed: int | None = None, camera=No
     shutil.rmtree(tmp, ignore_errors=True)
     twin = make_twin(camera=camera)
     try:
-        record(twin, scenario, tmp, seconds=seconds, seed=seed, scene_seed=scene_seed, progress=False)
+        record(twin, scenario, tmp, seconds=seconds, seed=seed, scene_seed=scene_seed, progress=False, depth=depth)
     finally:
         twin.close()
     shutil.rmtree(path, ignore_errors=True)

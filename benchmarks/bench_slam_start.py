@@ -33,28 +33,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench_slam import CACHE, REPORT_SEEDS  # noqa: E402
-
-
-def _recording(scenario: str, seed: int, depth: bool) -> Path:
-    name = f"{scenario}-s{seed}" + ("-depth" if depth else "")
-    path = CACHE / name
-    if (path / "rgb.txt").exists() and not (path / "INCOMPLETE").exists():
-        return path
-    from runtime.twin.recorder import record
-    from wvr.assemble import make_twin
-
-    CACHE.mkdir(parents=True, exist_ok=True)
-    tmp = CACHE / f".{name}.{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    twin = make_twin()
-    try:
-        record(twin, scenario, tmp, seed=seed, progress=False, depth=depth)
-    finally:
-        twin.close()
-    shutil.rmtree(path, ignore_errors=True)
-    tmp.rename(path)
-    return path
+from bench_slam import REPORT_SEEDS, recording  # noqa: E402
 
 
 def _job(args) -> tuple:
@@ -66,7 +45,7 @@ def _job(args) -> tuple:
     from runtime.slam.config import MapSettings
     from runtime.slam.run import run_slam
 
-    src = _recording(scenario, seed, kind == "depth")
+    src = recording(scenario, seed, depth=kind == "depth")
     with tempfile.TemporaryDirectory() as d:
         seq = Path(d) / "seq"
         drop = ["target.toml", "rgb", "depth"] + ([] if kind == "imu" else ["imu.txt"])
