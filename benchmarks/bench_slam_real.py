@@ -80,9 +80,10 @@ def main() -> int:
         for var in ("WVR_EUROC_MH01", "WVR_KITTI07", "WVR_TUM"):
             folders += [Path(v) for v in os.environ.get(var, "").split(":") if v]
     if not folders:
-        print("no sequence: give folders or set WVR_EUROC_MH01, WVR_KITTI07, WVR_TUM (benchmarks/datasets.md)",
-              file=sys.stderr)
-        return 2
+        # make bench runs every benchmark: without the public data this one has nothing to say.
+        print("bench_slam_real: skipped: no sequence; give folders or set WVR_EUROC_MH01, WVR_KITTI07, WVR_TUM "
+              "(benchmarks/datasets.md)")
+        return 0
     print("| sequence | frames (before start) | lost | scale (Sim3 factor) | ATE Sim3 cm | ATE none cm | "
           "ms median / p99 / max | ORB-SLAM / PTAM / LSD-SLAM cm |")
     print("|---|---|---|---|---|---|---|---|")
