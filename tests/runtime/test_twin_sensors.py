@@ -313,7 +313,11 @@ def test_recording_carries_its_head_clicked_target_and_truth_files(tmp_path):
                                           (["--seed", "-1"], "--seed -1")])
 def test_bad_record_options_are_one_line_errors(tmp_path, capsys, args, message):
     out = tmp_path / "never"
-    assert main(["sim", "record", "--scenario", "kitchen-static", "--out", str(out), *args]) == 2
+    # Refused while the options are parsed (argparse's exit 2), naming the option and the value.
+    with pytest.raises(SystemExit) as e:
+        main(["sim", "record", "--scenario", "kitchen-static", "--out", str(out), *args])
+    assert e.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("wvr: error: " + message) and "\n" not in err
+    flag, value = message.split()
+    assert f"argument {flag}: '{value}'" in err and "\n" not in err
     assert not out.exists()
