@@ -1,29 +1,164 @@
 """Every tunable number of the SLAM, in two places: the filter's (:class:`SlamConfig`) and the
 map management's and start-up's (:class:`MapSettings`). The values were chosen on training
 seeds of the twin's scenes; benchmarks/README.md records how and on which, and the figures on
-held-out seeds."""
+held-out seeds.
+
+Both are frozen dataclasses of frozen groups, one a part of the SLAM reads (``settings.imu``,
+``cfg.impulses``). Compatibility: each old flat name maps to one (group, field) in
+:data:`MAP_FLAT` / :data:`SLAM_FLAT`; it is accepted as a keyword by the constructor and by
+``dataclasses.replace`` (``replace(MapSettings(), use_imu=False)``, or :func:`with_overrides`),
+and reads as a property (``settings.use_imu`` is ``settings.imu.use_imu``). A name in neither is
+refused with the list of groups."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 
 FEATURE_TYPES = ("inverse-depth", "particles")
 WARP_MODES = ("known", "neighbours", "all")
 
 
-def _check_numbers(obj, skip=()) -> None:
+def _check_numbers(obj, skip=(), owner: str | None = None) -> None:
     for f in fields(obj):
         v = getattr(obj, f.name)
         if f.name in skip or isinstance(v, (bool, str)):
             continue
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-            raise ValueError(f"{type(obj).__name__}.{f.name} = {v!r} must be a finite number >= 0")
+            raise ValueError(f"{owner or type(obj).__name__}.{f.name} = {v!r} must be a finite number >= 0")
+
+
+def _flat_map(groups: dict[str, type], renames: dict[str, str] = {}) -> dict[str, tuple[str, str]]:
+    """Old flat name -> (group, field): a group's fields keep their flat names but for ``renames``
+    (field -> old flat name)."""
+    out = {}
+    for g, cls in groups.items():
+        for f in fields(cls):
+            out[renames.get(f"{g}.{f.name}", f.name)] = (g, f.name)
+    return out
+
+
+class _Grouped:
+    """Construction from groups and old flat names (see the module's docstring)."""
+
+    _GROUPS: dict[str, type] = {}
+    _FLAT: dict[str, tuple[str, str]] = {}
+
+    def __init__(self, **kw):
+        cls = type(self)
+        own = {f.name: f for f in fields(cls)}
+        values, flat = {}, {}
+        for k, v in kw.items():
+            if k in own:
+                values[k] = v
+            elif k in cls._FLAT:
+                flat.setdefault(cls._FLAT[k][0], {})[cls._FLAT[k][1]] = v
+            else:
+                raise TypeError(f"{cls.__name__} has no setting {k!r}: give a group ({', '.join(cls._GROUPS)}) or one "
+                                f"of its fields' flat names (runtime/slam/config.py)")
+        for name, f in own.items():
+            if name in values:
+                v = values[name]
+            else:
+                v = f.default_factory() if f.default_factory is not MISSING else f.default
+            if name in flat:
+                v = replace(v, **flat[name])
+            object.__setattr__(self, name, v)
+        self.__post_init__()
+
+    def flat(self) -> dict:
+        """Every setting by its old flat name (for records and comparisons)."""
+        out = {k: getattr(getattr(self, g), f) for k, (g, f) in type(self)._FLAT.items()}
+        out.update({f.name: getattr(self, f.name) for f in fields(self) if f.name not in type(self)._GROUPS})
+        return out
+
+
+def _add_flat_properties(cls) -> None:
+    """Old flat attribute reads (``settings.use_imu``) as properties reading the group."""
+    for k, (g, f) in cls._FLAT.items():
+        setattr(cls, k, property(lambda self, g=g, f=f: getattr(getattr(self, g), f),
+                                 doc=f"Compatibility: ``{g}.{f}``."))
+
+
+def with_overrides(settings, **flat):
+    """``settings`` with some values changed, given by group (``imu=ImuSettings(...)``) or by old
+    flat name (``use_imu=False``): ``dataclasses.replace`` with the flat names mapped."""
+    return replace(settings, **flat)
 
 
 @dataclass(frozen=True)
-class SlamConfig:
-    """The filter's parameters.
+class MotionNoise:
+    """The constant-velocity model's impulses (SlamConfig's docstring: sigma_a, sigma_alpha,
+    motion_noise_interval)."""
+
+    sigma_a: float = 4.0
+    sigma_alpha: float = 6.0
+    motion_noise_interval: float = 0.033
+
+    def __post_init__(self):
+        _check_numbers(self, owner="SlamConfig")
+
+
+@dataclass(frozen=True)
+class ImpulseAdaptation:
+    """Each track's impulses adapted to its own motion (SlamConfig's docstring: adapt_*)."""
+
+    adapt_sigma_a: bool = True
+    adapt_after: float = 2.0
+    adapt_turn_rate: float = 1.0
+    sigma_a_min: float = 1.0
+    adapt_margin: float = 4.0
+    adapt_window: float = 1.0
+    adapt_lag: float = 0.15
+    adapt_sigma_alpha: bool = True
+    adapt_onset: bool = True
+    adapt_alpha_lag: float = 0.1
+    adapt_alpha_margin: float = 2.0
+    sigma_alpha_max: float = 30.0
+
+    def __post_init__(self):
+        _check_numbers(self, owner="SlamConfig")
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """The inertial prediction's noises, biases and clock offset (SlamConfig's docstring: imu_*,
+    *_bias_*, time_offset*)."""
+
+    imu_accel_noise: float = 0.004
+    imu_gyro_noise: float = 0.0005
+    imu_hold_rate_sigma: float = 0.5
+    imu_hold_accel_sigma: float = 2.0
+    gyro_bias_walk: float = 2e-4
+    accel_bias_walk: float = 2e-3
+    gyro_bias_sigma0: float = 0.01
+    accel_bias_sigma0: float = 0.1
+    time_offset0: float = 0.0
+    time_offset_sigma0: float = 0.005
+    time_offset_walk: float = 1e-4
+
+    def __post_init__(self):
+        _check_numbers(self, skip=("time_offset0",), owner="SlamConfig")
+        if not math.isfinite(self.time_offset0):
+            raise ValueError(f"SlamConfig.time_offset0 = {self.time_offset0!r} must be a finite number of seconds")
+
+
+@dataclass(frozen=True)
+class CovarianceGuard:
+    """The covariance guard (SlamConfig's docstring: psd_rel_tol, psd_check_every)."""
+
+    psd_rel_tol: float = 1e-9
+    psd_check_every: int = 10
+
+    def __post_init__(self):
+        _check_numbers(self, owner="SlamConfig")
+
+
+@dataclass(frozen=True, init=False)
+class SlamConfig(_Grouped):
+    """The filter's parameters, in groups: ``motion`` (:class:`MotionNoise`), ``impulses``
+    (:class:`ImpulseAdaptation`), ``imu`` (:class:`ImuNoise`), ``guard``
+    (:class:`CovarianceGuard`), and ``sigma_pixel``. Each is described below by its flat name.
 
     sigma_a, sigma_alpha : constant-velocity impulses' standard deviations, m/s^2 and rad/s^2
         (MonoSLAM's hand-held values are 4 and 6), over a step of ``motion_noise_interval``.
@@ -75,42 +210,22 @@ class SlamConfig:
         finiteness, symmetry and non-negative variances are checked at every step.
     """
 
-    sigma_a: float = 4.0
-    sigma_alpha: float = 6.0
-    motion_noise_interval: float = 0.033
-    adapt_sigma_a: bool = True
-    adapt_after: float = 2.0
-    adapt_turn_rate: float = 1.0
-    sigma_a_min: float = 1.0
-    adapt_margin: float = 4.0
-    adapt_window: float = 1.0
-    adapt_lag: float = 0.15
-    adapt_sigma_alpha: bool = True
-    adapt_onset: bool = True
-    adapt_alpha_lag: float = 0.1
-    adapt_alpha_margin: float = 2.0
-    sigma_alpha_max: float = 30.0
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    impulses: ImpulseAdaptation = field(default_factory=ImpulseAdaptation)
     sigma_pixel: float = 1.0
-    imu_accel_noise: float = 0.004
-    imu_gyro_noise: float = 0.0005
-    imu_hold_rate_sigma: float = 0.5
-    imu_hold_accel_sigma: float = 2.0
-    gyro_bias_walk: float = 2e-4
-    accel_bias_walk: float = 2e-3
-    gyro_bias_sigma0: float = 0.01
-    accel_bias_sigma0: float = 0.1
-    time_offset0: float = 0.0
-    time_offset_sigma0: float = 0.005
-    time_offset_walk: float = 1e-4
-    psd_rel_tol: float = 1e-9
-    psd_check_every: int = 10
+    imu: ImuNoise = field(default_factory=ImuNoise)
+    guard: CovarianceGuard = field(default_factory=CovarianceGuard)
+
+    _GROUPS = {"motion": MotionNoise, "impulses": ImpulseAdaptation, "imu": ImuNoise, "guard": CovarianceGuard}
+    _FLAT = _flat_map(_GROUPS)
 
     def __post_init__(self):
-        _check_numbers(self, skip=("time_offset0",))
-        if not math.isfinite(self.time_offset0):
-            raise ValueError(f"SlamConfig.time_offset0 = {self.time_offset0!r} must be a finite number of seconds")
+        if not (isinstance(self.sigma_pixel, (int, float)) and math.isfinite(self.sigma_pixel) and self.sigma_pixel >= 0):
+            raise ValueError(f"SlamConfig.sigma_pixel = {self.sigma_pixel!r} must be a finite number >= 0")
 
 
+SLAM_FLAT = SlamConfig._FLAT
+_add_flat_properties(SlamConfig)
 DEFAULT_CONFIG = SlamConfig()
 
 
@@ -121,42 +236,69 @@ class RansacSettings:
     threshold_px : a low-innovation inlier lies within this of a hypothesis' prediction, px.
     max_hypotheses : hypotheses tried at most. confidence : the chance of drawing an all-inlier
     hypothesis at which the trials stop. rescue_chi2 : a high-innovation match is rescued if its
-    ``nu^T S^-1 nu`` after the first update is below this (chi-square, 2 dof)."""
+    ``nu^T S^-1 nu`` after the first update is below this (chi-square, 2 dof). known_vote : a
+    target corner placed by its sides: its vote for a hypothesis (a natural feature's: <= 1)."""
 
-    threshold_px: float = 2.0
-    max_hypotheses: int = 60
-    confidence: float = 0.99
-    rescue_chi2: float = 4.61
+    threshold_px: float = 2.0            # flat: ransac_threshold_px
+    max_hypotheses: int = 60             # flat: ransac_max_hypotheses
+    confidence: float = 0.99             # flat: ransac_confidence
+    rescue_chi2: float = 4.61            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 90%)
+    known_vote: float = 5.0
 
     def __post_init__(self):
         _check_numbers(self)
         if not 0.0 < self.confidence < 1.0:
             raise ValueError(f"RansacSettings.confidence = {self.confidence}: give a probability between 0 and 1")
+        if not self.known_vote > 0:
+            raise ValueError(f"MapSettings.known_vote = {self.known_vote}: a target corner's vote must be positive")
+
+
+def _checked(cls):
+    """A MapSettings group whose numbers are all finite and >= 0."""
+    cls.__post_init__ = lambda self: _check_numbers(self, owner="MapSettings")
+    return cls
 
 
 @dataclass(frozen=True)
-class MapSettings:
-    """Map management, matching, start-up and re-localisation (paper, sections 4.1 to 4.3)."""
+@_checked
+class MeasureSettings:
+    """Features measured and started each frame (measure.py, mapping.py)."""
 
-    # -- features --
-    features: str = "inverse-depth"      # how new features start: FEATURE_TYPES
     measure_max: int = 60                # features measured per frame, at most
     visible_min: int = 48                # add features when fewer were matched (inliers)
     new_per_frame: int = 4               # new features started in one frame, at most
     min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
     noise_every: int = 15                # frames between estimates of the image noise (new features' contrast)
-    # -- inverse depth (Civera et al.) --
+
+
+@dataclass(frozen=True)
+@_checked
+class InverseDepthSettings:
+    """New features' inverse depth (Civera et al.)."""
+
     rho0: float = 1.0                    # initial inverse depth, 1/m, until the map has depths
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
     scene_depth_prior: bool = True       # rho0: the median of the frame's matches (inverse_depth.scene_prior)
     linearity_threshold: float = 0.02    # convert to a point below this linearity index (Civera et al.: 0.1),
     linearity_threshold_narrow: float = 0.1  # or this one below NARROW_WIDTH_PX, where speed decides (NOTES)
-    # -- a natural feature's persistent residual (MapFeature.drift) --
+
+
+@dataclass(frozen=True)
+@_checked
+class DriftSettings:
+    """A natural feature's persistent residual (MapFeature.drift) and a match's noise shape."""
+
     drift_memory: float = 0.1            # the newest residual's weight in its exponential mean
     drift_gain: float = 4.0              # variance x (1 + gain |drift|^2 / sigma_pixel^2); 0: off
     aperture_noise: bool = True          # a match's noise shaped by its template's gradients (templates.match_noise_shape)
-    # -- particles (the paper's factored sampling) --
+
+
+@dataclass(frozen=True)
+@_checked
+class ParticleSettings:
+    """The paper's factored sampling of a new feature's depth (features/particles.py)."""
+
     particles: int = 100
     depth_near_m: float = 0.5
     depth_far_m: float = 5.0
@@ -167,19 +309,26 @@ class MapSettings:
     promote_std_gain: float = 2.0
     outlier: float = 0.1
     max_initialising: int = 6
-    # -- 1-point RANSAC (Civera, Grasa, Davison, Montiel 2010) --
-    ransac_threshold_px: float = 2.0     # low-innovation inliers: within this of a hypothesis
-    ransac_max_hypotheses: int = 60
-    ransac_confidence: float = 0.99
-    rescue_chi2: float = 4.61            # rescued if nu^T S^-1 nu below this (chi2, 2 dof, 90%)
-    known_vote: float = 5.0              # a target corner placed by its sides: its vote for a hypothesis (a natural feature's: <= 1)
-    # -- deletion, visibility, matching --
+
+
+@dataclass(frozen=True)
+@_checked
+class DeletionSettings:
+    """Features deleted, and the map's size."""
+
     delete_min_attempts: int = 10
     delete_ratio: float = 0.5
     delete_young_attempts: int = 4       # a feature matched at most a quarter of its first 4+ searches goes
     max_features: int = 150              # the map's size cap (the EKF's cost grows as its square)
     consistency_window: int = 8          # a feature's last inlier innovations tested together:
     consistency_confidence: float = 0.999  # deleted when their NIS sum exceeds this chi-square quantile
+
+
+@dataclass(frozen=True)
+@_checked
+class ViewSettings:
+    """Visibility from a feature's first view, and matching (views.py)."""
+
     max_view_angle_deg: float = 60.0
     max_range_ratio: float = 2.0
     max_view_angle_known_deg: float = 60.0
@@ -189,7 +338,13 @@ class MapSettings:
     margin_px: float = 12.0
     match_score: float = 0.25            # zero-mean normalised SSD 2 (1 - ZNCC): ZNCC >= 0.875
     max_search_area_px: int = 40_000     # an ellipse larger than this is not searched
-    # -- lost track and re-localisation --
+
+
+@dataclass(frozen=True)
+@_checked
+class RelocalisationSettings:
+    """Lost track and re-localisation (relocalisation.py), and the retry with larger impulses."""
+
     lost_after: int = 10                 # frames with fewer than 3 inliers before "lost"
     lost_noise_gain: float = 2.0
     reloc_candidates: int = 40
@@ -202,6 +357,14 @@ class MapSettings:
     retry_found_fraction: float = 0.5    # fewer of the searched found: searched again with larger impulses
     retry_min_searched: int = 10
     retry_noise_gain: float = 4.0        # those impulses' scale (1: no retry; camera-only predictions)
+
+
+@dataclass(frozen=True)
+@_checked
+class ReacquireSettings:
+    """The target re-acquired near its prediction, and the loop closed by a whole-image search
+    (reacquire.py)."""
+
     reacquire_after: int = 3             # frames the whole target is predicted in view and missed before it is sought (0: never)
     reacquire_search: float = 0.5        # sought this far from its prediction, a fraction of its diagonal
     reacquire_chi2: float = 26.1         # found farther than this from the prediction (chi2, 8 dof, 99.9%): the pose had drifted
@@ -212,7 +375,13 @@ class MapSettings:
     loop_trials: int = 2                 # candidate poses checked against the map (the most rectangle-like first)
     loop_min_old: int = 4                # natural features from before the target was lost matched at its pose,
     loop_window_px: float = 8.0          # and half of those in view, each this near its projection (the median a third)
-    # -- start-up from the known target --
+
+
+@dataclass(frozen=True)
+@_checked
+class StartupSettings:
+    """Start-up from the known target (startup.py)."""
+
     target_sigma_m: float = 0.0001       # the printed target's geometry (0.1 mm): it holds the world's scale
     known_sigma_px: float = 0.25         # a target corner's measurement, px (its sides: 0.04-0.26 px off)
     known_edges: bool = True             # a printed rectangle's corners placed each frame by its fitted sides
@@ -224,15 +393,27 @@ class MapSettings:
     ambiguity_gate_chi2: float = 9.21    # their evidence: a miss or an outlier costs this (chi2, 2 dof, 99%)
     init_sigma_v: float = 0.3
     init_sigma_w: float = 0.5
-    # -- template warping (plane-induced homographies) --
-    warp: str = "all"
+
+
+@dataclass(frozen=True)
+@_checked
+class NormalSettings:
+    """Template warping's planes and fitted normals (plane-induced homographies; MapSettings.warp
+    chooses which features are warped)."""
+
     plane_radius_m: float = 0.25
     plane_tol_m: float = 0.01
     normals_every: int = 10
     normals_per_frame: int = 4           # matched features whose normal is fitted to their looks, a frame, at most
     normal_step_deg: float = 10.0        # each time its view has turned this much further from the first
     normal_margin: float = 0.02          # and kept when it scores this much better than the current one
-    # -- IMU --
+
+
+@dataclass(frozen=True)
+@_checked
+class ImuSettings:
+    """The IMU's use and its samples' checks (inertial.py)."""
+
     use_imu: bool = True
     imu_biases: bool = True              # bias states in the filter (the camera block of 19)
     imu_time_offset: bool = True         # and the IMU's clock offset (20), with the biases only
@@ -242,17 +423,41 @@ class MapSettings:
     imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes
     imu_max_accel_m_s2: float = 160.0
 
-    @property
-    def ransac(self) -> RansacSettings:
-        """The 1-point RANSAC's settings (ransac_threshold_px, ransac_max_hypotheses,
-        ransac_confidence, rescue_chi2) as one object."""
-        return RansacSettings(self.ransac_threshold_px, self.ransac_max_hypotheses, self.ransac_confidence,
-                              self.rescue_chi2)
+
+@dataclass(frozen=True, init=False)
+class MapSettings(_Grouped):
+    """Map management, matching, start-up and re-localisation (paper, sections 4.1 to 4.3), in
+    groups a part each; ``features`` (how new features start: FEATURE_TYPES) and ``warp`` (which
+    templates are warped: WARP_MODES) are the two modes. Old flat names: see the module's
+    docstring and :data:`MAP_FLAT`."""
+
+    features: str = "inverse-depth"
+    measure: MeasureSettings = field(default_factory=MeasureSettings)
+    inverse_depth: InverseDepthSettings = field(default_factory=InverseDepthSettings)
+    drift: DriftSettings = field(default_factory=DriftSettings)
+    depth_init: ParticleSettings = field(default_factory=ParticleSettings)
+    ransac: RansacSettings = field(default_factory=RansacSettings)
+    deletion: DeletionSettings = field(default_factory=DeletionSettings)
+    views: ViewSettings = field(default_factory=ViewSettings)
+    relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
+    reacquire: ReacquireSettings = field(default_factory=ReacquireSettings)
+    startup: StartupSettings = field(default_factory=StartupSettings)
+    warp: str = "all"
+    normals: NormalSettings = field(default_factory=NormalSettings)
+    imu: ImuSettings = field(default_factory=ImuSettings)
+
+    _GROUPS = {"measure": MeasureSettings, "inverse_depth": InverseDepthSettings, "drift": DriftSettings,
+               "depth_init": ParticleSettings, "ransac": RansacSettings, "deletion": DeletionSettings,
+               "views": ViewSettings, "relocalisation": RelocalisationSettings, "reacquire": ReacquireSettings,
+               "startup": StartupSettings, "normals": NormalSettings, "imu": ImuSettings}
+    _FLAT = _flat_map(_GROUPS, {"ransac.threshold_px": "ransac_threshold_px",
+                                "ransac.max_hypotheses": "ransac_max_hypotheses",
+                                "ransac.confidence": "ransac_confidence"})
 
     def with_measure(self, n: int) -> "MapSettings":
         """These settings measuring at most ``n`` features a frame, adding new ones below the
         same fraction of ``n`` as the defaults do (48 of 60)."""
-        fraction = MapSettings.visible_min / MapSettings.measure_max
+        fraction = MeasureSettings.visible_min / MeasureSettings.measure_max
         return replace(self, measure_max=int(n), visible_min=max(3, min(int(n), int(round(n * fraction)))))
 
     def __post_init__(self):
@@ -260,13 +465,15 @@ class MapSettings:
             raise ValueError(f"MapSettings.features = {self.features!r}: give one of {', '.join(FEATURE_TYPES)}")
         if self.warp not in WARP_MODES:
             raise ValueError(f"MapSettings.warp = {self.warp!r}: give one of {', '.join(WARP_MODES)}")
-        _check_numbers(self)
-        if not self.known_vote > 0:
-            raise ValueError(f"MapSettings.known_vote = {self.known_vote}: a target corner's vote must be positive")
-        if self.measure_max < 3:
-            raise ValueError(f"MapSettings.measure_max = {self.measure_max}: measure at least 3 features a frame")
-        if self.visible_min > self.measure_max:
-            raise ValueError(f"MapSettings.visible_min = {self.visible_min} exceeds measure_max = {self.measure_max}: "
+        m = self.measure
+        if m.measure_max < 3:
+            raise ValueError(f"MapSettings.measure_max = {m.measure_max}: measure at least 3 features a frame")
+        if m.visible_min > m.measure_max:
+            raise ValueError(f"MapSettings.visible_min = {m.visible_min} exceeds measure_max = {m.measure_max}: "
                              "new features would start every frame; give at most measure_max (see with_measure)")
-        if self.template_px % 2 == 0 or self.template_px < 5:
-            raise ValueError(f"MapSettings.template_px = {self.template_px}: give an odd size of at least 5")
+        if m.template_px % 2 == 0 or m.template_px < 5:
+            raise ValueError(f"MapSettings.template_px = {m.template_px}: give an odd size of at least 5")
+
+
+MAP_FLAT = MapSettings._FLAT
+_add_flat_properties(MapSettings)

@@ -29,7 +29,7 @@ class ImpulseAdapter:
     @property
     def at_priors(self) -> bool:
         """Whether the impulses are the configured priors."""
-        return (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha) == (self.cfg.sigma_a, self.cfg.sigma_alpha)
+        return self.motion_cfg.motion == self.cfg.motion
 
     def reset(self) -> None:
         """Back to the priors (a lost track: nothing says how the camera moves now)."""
@@ -42,13 +42,13 @@ class ImpulseAdapter:
         (motion.adapted_sigma_a), the angular one through a manoeuvre
         (motion.adapted_sigma_alpha)."""
         cfg = self.cfg
-        span = cfg.adapt_window + cfg.adapt_lag
-        t_keep = t - max(span, 1.05 * cfg.adapt_alpha_lag)
+        span = cfg.impulses.adapt_window + cfg.impulses.adapt_lag
+        t_keep = t - max(span, 1.05 * cfg.impulses.adapt_alpha_lag)
         hist = [h for h in self.v_hist if h[0] >= t_keep]
         hist.append((t, x[V_SLICE].copy(), var_v, x[W_SLICE].copy(), var_w))
         rate = float(np.linalg.norm(x[W_SLICE]))
         if not turning(cfg, rate):                  # both rules keep the priors: not built
-            return hist, cfg.sigma_a, cfg.sigma_alpha
+            return hist, cfg.motion.sigma_a, cfg.motion.sigma_alpha
         th, v, tr_v, w, tr_w = (np.array([h[k] for h in hist]) for k in range(5))
         i = int(np.searchsorted(th, t - span))       # the linear rule's own span of the history
         sigma_a = adapted_sigma_a(cfg, th[i:], v[i:], tr_v[i:], rate)
@@ -58,11 +58,11 @@ class ImpulseAdapter:
         """Whether the impulses adapt at time ``t``: an adaptation is on and ``adapt_after`` s
         have passed since the first frame asked."""
         cfg = self.cfg
-        if not (cfg.adapt_sigma_a or cfg.adapt_sigma_alpha):
+        if not (cfg.impulses.adapt_sigma_a or cfg.impulses.adapt_sigma_alpha):
             return False
         if self.t_start is None:
             self.t_start = t
-        return t - self.t_start >= cfg.adapt_after
+        return t - self.t_start >= cfg.impulses.adapt_after
 
     def adapt(self, t: float, state: State) -> None:
         """Keep the estimates of ``state`` after this frame and set the impulses the next
@@ -75,8 +75,8 @@ class ImpulseAdapter:
 
     def set(self, sigma_a: float, sigma_alpha: float) -> None:
         """Predict with these impulses, m/s^2 and rad/s^2."""
-        if (sigma_a, sigma_alpha) != (self.motion_cfg.sigma_a, self.motion_cfg.sigma_alpha):
-            self.motion_cfg = replace(self.cfg, sigma_a=sigma_a, sigma_alpha=sigma_alpha)
+        if (sigma_a, sigma_alpha) != (self.motion_cfg.motion.sigma_a, self.motion_cfg.motion.sigma_alpha):
+            self.motion_cfg = replace(self.cfg, motion=replace(self.cfg.motion, sigma_a=sigma_a, sigma_alpha=sigma_alpha))
 
     def turn_began(self, t: float, fu: FrameUpdate, turn: list) -> bool:
         """Whether a frame's updates ``fu``, not yet written, start a turn: the impulses after
@@ -84,7 +84,7 @@ class ImpulseAdapter:
         cfg = self.cfg
         impulses = self.impulses(t, fu.x, float(fu.variances(V_SLICE).sum()),
                                  float(fu.variances(W_SLICE).sum()))[1:]
-        if impulses == (cfg.sigma_a, cfg.sigma_alpha):
+        if impulses == (cfg.motion.sigma_a, cfg.motion.sigma_alpha):
             return False
         turn.extend(impulses)
         return True

@@ -150,8 +150,8 @@ def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamCo
     and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d)."""
     ds, omegas, fs, held = imu_intervals(imu, t0, t1, covered_until)
     cd = state.cam_dim
-    sa = noise_gain * np.sqrt(cfg.imu_accel_noise**2 + held * cfg.imu_hold_accel_sigma**2 * ds)
-    sg = noise_gain * np.sqrt(cfg.imu_gyro_noise**2 + held * cfg.imu_hold_rate_sigma**2 * ds)
+    sa = noise_gain * np.sqrt(cfg.imu.imu_accel_noise**2 + held * cfg.imu.imu_hold_accel_sigma**2 * ds)
+    sg = noise_gain * np.sqrt(cfg.imu.imu_gyro_noise**2 + held * cfg.imu.imu_hold_rate_sigma**2 * ds)
     x_v, P_vv, F_total = _propagate_kernel(state.x[:cd].copy(), state.P[:cd, :cd].copy(),
                                            ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg)
     bias_walk(P_vv, t1 - t0, cfg)
@@ -198,8 +198,8 @@ class ImuStream:
         c.rows += len(rows)
         problems = []
         finite = np.isfinite(rows).all(axis=1)
-        spike = finite & ((np.linalg.norm(rows[:, 1:4], axis=1) > self.settings.imu_max_rate_rad_s)
-                          | (np.linalg.norm(rows[:, 4:7], axis=1) > self.settings.imu_max_accel_m_s2))
+        spike = finite & ((np.linalg.norm(rows[:, 1:4], axis=1) > self.settings.imu.imu_max_rate_rad_s)
+                          | (np.linalg.norm(rows[:, 4:7], axis=1) > self.settings.imu.imu_max_accel_m_s2))
         ok = finite & ~spike
         t = rows[:, 0]
         order = np.zeros(len(rows), bool)
@@ -231,7 +231,7 @@ class ImuStream:
         """The rows for the interval (t0, t1], or None if they do not cover it without a gap
         longer than ``imu_max_gap_s`` (then the frame is predicted without the IMU, counted)."""
         r = self.rows
-        if not len(r) or r[0, 0] > t0 or r[-1, 0] < t1 - self.settings.imu_max_gap_s:
+        if not len(r) or r[0, 0] > t0 or r[-1, 0] < t1 - self.settings.imu.imu_max_gap_s:
             if len(r) and r[0, 0] <= t1:
                 self.counts.gaps += 1
             return None
@@ -241,7 +241,7 @@ class ImuStream:
         # From the sample holding at t0 (not t0 itself): a sample from before a dropout must not
         # stand for the motion through it.
         edges = np.concatenate([[min(seg[0, 0], t0)], seg[1:, 0], [t1]])
-        if np.diff(edges).max() > self.settings.imu_max_gap_s:
+        if np.diff(edges).max() > self.settings.imu.imu_max_gap_s:
             self.counts.gaps += 1
             return None
         return seg
@@ -276,7 +276,7 @@ def still_biases(rows: np.ndarray, t_end: float, q: np.ndarray, settings: MapSet
     accelerometer ``R(q)^T (0, 0, 9.81) + b_a`` (``q``: the camera's attitude, world frame)."""
     rows = np.asarray(rows, float).reshape(-1, 7)
     rows = rows[rows[:, 0] <= t_end + 1e-9]
-    if len(rows) < 3 or t_end - rows[0, 0] < settings.still_min_s:
+    if len(rows) < 3 or t_end - rows[0, 0] < settings.imu.still_min_s:
         return None
     # The longest stretch back from t_end whose rates' RMS spread about their mean stays below
     # the threshold (suffix sums: every candidate start at once).
@@ -284,11 +284,11 @@ def still_biases(rows: np.ndarray, t_end: float, q: np.ndarray, settings: MapSet
     n = np.arange(1, len(rows) + 1)[:, None]
     mean = np.cumsum(w_rev, axis=0) / n
     spread = np.sqrt(np.maximum(np.cumsum((w_rev**2).sum(axis=1)) / n[:, 0] - (mean**2).sum(axis=1), 0.0))
-    still = spread <= settings.still_gyro_rad_s
+    still = spread <= settings.imu.still_gyro_rad_s
     m = len(rows) if still.all() else int(np.argmin(still))      # the first suffix that is not still
     seg = rows[len(rows) - m:]
     T = float(t_end - seg[0, 0]) if len(seg) else 0.0
-    if len(seg) < 3 or T < settings.still_min_s:
+    if len(seg) < 3 or T < settings.imu.still_min_s:
         return None
     w, f = seg[:, 1:4], seg[:, 4:7]
     b_g = w.mean(axis=0)
@@ -299,6 +299,6 @@ def still_biases(rows: np.ndarray, t_end: float, q: np.ndarray, settings: MapSet
     J_q = -np.column_stack([dR[k].T @ up for k in range(4)])
     # The means' standard errors: from the noise densities, or from the samples' own spread per
     # axis when that is larger (some motion left in the stretch).
-    var_g = max(cfg.imu_gyro_noise**2 / T, float(np.mean((w - b_g) ** 2)) / len(w))
-    var_f = max(cfg.imu_accel_noise**2 / T, float(np.mean((f - f.mean(axis=0)) ** 2)) / len(f))
+    var_g = max(cfg.imu.imu_gyro_noise**2 / T, float(np.mean((w - b_g) ** 2)) / len(w))
+    var_f = max(cfg.imu.imu_accel_noise**2 / T, float(np.mean((f - f.mean(axis=0)) ** 2)) / len(f))
     return StillBiases(b_g, b_a, var_g, var_f, J_q, T)

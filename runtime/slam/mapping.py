@@ -117,8 +117,9 @@ class MapManager:
         inv = np.flatnonzero(kinds == INVERSE_DEPTH)
         behind = set(inv[state.x[state.starts[inv] + 5] < 0].tolist())   # rho < 0
         bad = []
-        min_attempts, ratio, young = s.delete_min_attempts, s.delete_ratio, s.delete_young_attempts
-        window, nis_limit = s.consistency_window, self.nis_limit
+        d = s.deletion
+        min_attempts, ratio, young = d.delete_min_attempts, d.delete_ratio, d.delete_young_attempts
+        window, nis_limit = d.consistency_window, self.nis_limit
         for k, f in enumerate(m.features):
             if f.known:
                 continue
@@ -133,7 +134,7 @@ class MapManager:
                 bad.append(k)
             elif k in behind:
                 bad.append(k)          # its depth went behind the first view: a mismatch's trace
-        excess = len(m.features) - len(bad) - s.max_features
+        excess = len(m.features) - len(bad) - s.deletion.max_features
         if excess > 0:
             gone = set(bad)
             keep = np.array([k for k in range(len(m.features)) if k not in gone and not m.features[k].known],
@@ -165,23 +166,25 @@ class MapManager:
         particle rays (``features = "particles"``)."""
         s, cam = self.settings, self.cam
         if s.features == "particles":
-            n = min(s.max_initialising - len(m.rays), s.new_per_frame)
+            n = min(s.depth_init.max_initialising - len(m.rays), s.measure.new_per_frame)
         else:
-            n = min(s.new_per_frame, s.visible_min - visible)
+            n = min(s.measure.new_per_frame, s.measure.visible_min - visible)
         if n <= 0:
             return
         scale = cam.width / 640.0
         # Where the motion keeps them in view first, else any (MonoSLAM's placement).
         chosen = new_features(g, self._occupied(m), 4 * n, size=self.template_px,
-                              min_std=self.noise.contrast_floor(g, frame), min_distance=s.min_distance_px * scale,
+                              min_std=self.noise.contrast_floor(g, frame),
+                              min_distance=s.measure.min_distance_px * scale,
                               border=max(int(20 * scale), self.template_px),
-                              prefer=lambda uv: stay_in_view(cam, s.margin_px, m.state.x_v, uv), take=n)
+                              prefer=lambda uv: stay_in_view(cam, s.views.margin_px, m.state.x_v, uv), take=n)
         R0 = quat_to_rotation(m.state.q)
         ph = patch_half(self.template_px)
         if s.features == "particles":
             for uv, tpl in chosen:
                 origin, d = ray_from_pixel(m.state.x_v, uv, cam)[:2]
-                p = depth_init.DepthParticles.create(origin, d, tpl, uv, s.particles, s.depth_near_m, s.depth_far_m)
+                pi = s.depth_init
+                p = depth_init.DepthParticles.create(origin, d, tpl, uv, pi.particles, pi.depth_near_m, pi.depth_far_m)
                 m.rays.append((self.ids.new(), p, R0.copy(), first_view_patch(g, uv, ph)))
         elif chosen:
             uvs = np.array([uv for uv, _ in chosen], float)
@@ -209,12 +212,13 @@ class MapManager:
     def _depth_prior(self, m: SlamMap) -> tuple[float, float]:
         """New inverse-depth features' prior (rho0, sigma_rho), 1/m: centred on the points this
         frame's measurement used (inverse_depth.scene_prior) unless the settings fix it."""
-        s, sv = self.settings, m.last
-        if not s.scene_depth_prior or sv is None:
-            return s.rho0, s.sigma_rho
+        idp, sv = self.settings.inverse_depth, m.last
+        prior = (idp.rho0, idp.sigma_rho)
+        if not idp.scene_depth_prior or sv is None:
+            return prior
         used = set(sv.ids[sv.used].tolist())         # by id: _delete may have renumbered the map
         ks = [k for k, f in enumerate(m.features) if f.id in used]
-        return inverse_depth.scene_prior(m.world_points()[ks], m.state.r, s.rho0, s.sigma_rho)
+        return inverse_depth.scene_prior(m.world_points()[ks], m.state.r, *prior)
 
     def normals_from_views(self, g: np.ndarray, m: SlamMap) -> None:
         """The plane normals of features matched this frame whose view has turned far enough
@@ -239,7 +243,8 @@ class MapManager:
         r0s = np.array([feats[k].r0 for k in ks], float).reshape(-1, 3)
         angle = np.degrees(np.arccos(_from_first_view(np.ascontiguousarray(Y[ks]), np.asarray(r, float), r0s)[0]))
         gain = angle - np.array([feats[k].normal_view_deg for k in ks])
-        due = [i for i in np.argsort(-gain, kind="stable")[:s.normals_per_frame] if gain[i] >= s.normal_step_deg]
+        nm = s.normals
+        due = [i for i in np.argsort(-gain, kind="stable")[:nm.normals_per_frame] if gain[i] >= nm.normal_step_deg]
         if not due:
             return
         R = quat_to_rotation(m.state.x_v[3:7])
@@ -253,7 +258,7 @@ class MapManager:
                 np.asarray(f.r0, float), np.ascontiguousarray(Y[ks[i]], float), np.asarray(r, float), R, model, lens,
                 np.asarray(sv.z[js[i]], float), np.asarray(f.normal, float), tilts, 8, 10.0)
             f.normal_view_deg = float(angle[i])
-            if score < current - s.normal_margin:
+            if score < current - s.normals.normal_margin:
                 f.normal = n / np.linalg.norm(n)
 
     def normals_from_map(self, m: SlamMap) -> None:
@@ -264,11 +269,12 @@ class MapManager:
         if len(points) < 4:
             return
         Y = m.world_points()[points]
-        neighbours = cKDTree(Y).query_ball_point(Y, self.settings.plane_radius_m)
+        neighbours = cKDTree(Y).query_ball_point(Y, self.settings.normals.plane_radius_m)
         for j, k in enumerate(points):
             f = m.features[k]
             if not f.known and len(neighbours[j]) >= 4 and f.normal_view_deg == 0:
-                n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf, self.settings.plane_tol_m)
+                n = local_plane_normal(Y[neighbours[j]], neighbours[j].index(j), np.inf,
+                                       self.settings.normals.plane_tol_m)
                 if n is not None:
                     f.normal, f.normal_from_map = (n if n @ (f.r0 - Y[j]) > 0 else -n), True
 
@@ -296,13 +302,13 @@ class MapManager:
                 hi = (uv[ok] + 3 * np.sqrt(S[ok][:, [0, 1], [0, 1]])).max(axis=0)
                 c, half = (lo + hi) / 2, (hi - lo) / 2
                 hit = search(g, p.template, c, np.diag((half / 3) ** 2) + 1e-9, n_sigma=3.0,
-                             max_score=s.match_score, max_area=120_000)
+                             max_score=s.views.match_score, max_area=120_000)
                 return (hit.uv, float(np.prod(2 * half + 1))) if hit.found else None
 
-            depth_init.step(p, project, match, s.prune, s.outlier)
-            if p.is_gaussian(s.gauss_ratio) and p.frames >= s.min_init_frames:
+            depth_init.step(p, project, match, s.depth_init.prune, s.depth_init.outlier)
+            if p.is_gaussian(s.depth_init.gauss_ratio) and p.frames >= s.depth_init.min_init_frames:
                 self._promote(m, fid, p, R0, patch, st, frame)
-            elif p.frames < s.max_init_frames and p.failures < 10 and len(p.depths) > 0:
+            elif p.frames < s.depth_init.max_init_frames and p.failures < 10 and len(p.depths) > 0:
                 keep.append((fid, p, R0, patch))
         m.rays = keep
         st.initialising = len(m.rays)
@@ -314,8 +320,8 @@ class MapManager:
             return
         depth = float(np.linalg.norm(y - m.state.r))
         try:
-            add_point_feature(m.state, uv, depth, (self.settings.promote_std_gain * p.std) ** 2, self.sigma_pixel**2,
-                              self.cam)
+            add_point_feature(m.state, uv, depth, (self.settings.depth_init.promote_std_gain * p.std) ** 2,
+                              self.sigma_pixel**2, self.cam)
         except (SlamNumericalError, FeatureNotMeasurable):
             return
         normal = (p.origin - y) / np.linalg.norm(p.origin - y)

@@ -52,26 +52,26 @@ class Measurement:
         ok, r_scale = m.views(pred, Y, cam, s, self.sigma_pixel)
         sel = np.flatnonzero(ok)
         r_scale = r_scale[sel]
-        if s.drift_gain > 0:
+        if s.drift.drift_gain > 0:
             sig2 = self.sigma_pixel ** 2
-            r_scale = r_scale * np.array([m.features[k].drift_variance_scale(s.drift_gain, sig2) for k in sel])
-        if s.aperture_noise:
+            r_scale = r_scale * np.array([m.features[k].drift_variance_scale(s.drift.drift_gain, sig2) for k in sel])
+        if s.drift.aperture_noise:
             r_scale = r_scale[:, None, None] * m.noise_shapes(sel)
         pred = pred.take(sel)
         m.in_view_ids = {m.features[k].id for k in pred.ks}
         S = innovation_covariances(state, pred, self.sigma_pixel**2, r_scale)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         area = 9 * math.pi * np.sqrt(np.maximum(det, 0))   # the 3-sigma ellipse, px^2
-        searchable = np.isfinite(area) & (area <= s.max_search_area_px)
+        searchable = np.isfinite(area) & (area <= s.views.max_search_area_px)
         visible = int(len(sel))
         idx = np.flatnonzero(searchable)
-        if len(idx) > s.measure_max:
+        if len(idx) > s.measure.measure_max:
             # The most reliable first (MapFeature.reliability), the most uncertain among equals,
             # spread over the image.
             feats = [m.features[k] for k in pred.ks[idx]]
             reliability = np.array([f.reliability for f in feats])
             priority = reliability + 1e-6 * np.log(np.maximum(det[idx], 1e-12))
-            idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure_max, idx)
+            idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure.measure_max, idx)
         pred = pred.take(idx)
         return pred, S[idx], r_scale[idx], visible, Y[pred.ks]
 
@@ -99,7 +99,7 @@ class Measurement:
         feats = [m.features[k] for k in pred.ks]
         warp = np.array([warped(s.warp, f) for f in feats], bool)
         z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, pred.uv, S,
-                                     s.match_score, s.max_search_area_px)
+                                     s.views.match_score, s.views.max_search_area_px)
         z[~found] = np.nan
         return pred, S, r_scale, visible, feats, z
 
@@ -115,13 +115,15 @@ class Measurement:
         pred, S, r_scale, visible, feats, z = self.search(g, m)
         n = len(pred.ks)
         n_found = int(np.isfinite(z).all(axis=1).sum())
-        if retry_dt and s.retry_noise_gain > 1 and n >= s.retry_min_searched and n_found < s.retry_found_fraction * n:
+        rl = s.relocalisation
+        if (retry_dt and rl.retry_noise_gain > 1 and n >= rl.retry_min_searched
+                and n_found < rl.retry_found_fraction * n):
             # Most features missed their ellipses: a jerk the constant-velocity model did not
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses,
             # kept if it finds more (after a long gap the grown ellipses can pass searching).
             first, before = (pred, S, r_scale, visible, feats, z), m.state.snapshot(camera_only=True)
-            self._grow_impulse(m.state, motion_cfg, retry_dt, s.retry_noise_gain)
+            self._grow_impulse(m.state, motion_cfg, retry_dt, s.relocalisation.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self.search(g, m)
             if np.isfinite(z).all(axis=1).sum() > n_found:
                 st.retried = True
@@ -130,7 +132,7 @@ class Measurement:
                 m.state.restore(before)
             n = len(pred.ks)
         st.predicted = visible
-        edged = self.known_by_edges(g, feats, z, pred.uv) if s.known_edges else np.zeros(n, bool)
+        edged = self.known_by_edges(g, feats, z, pred.uv) if s.startup.known_edges else np.zeros(n, bool)
         for f in feats:
             f.attempts += 1
         st.searched = n
@@ -139,7 +141,7 @@ class Measurement:
         m.last = SearchView(np.array([m.features[k].id for k in pred.ks], int), pred.uv.copy(), S.copy(), z,
                             np.zeros(n, bool), pred.ks.copy())
         if not found.any():
-            return True, -(0.5 * s.ambiguity_gate_chi2 * n)
+            return True, -(0.5 * s.startup.ambiguity_gate_chi2 * n)
         fi = np.flatnonzero(found)
         sub = pred.take(fi)
         rng = np.random.default_rng((self.seed, frame))
@@ -156,12 +158,12 @@ class Measurement:
                 m.features[k].successes += 1
                 m.features[k].last_seen = frame
         m.last.used[fi] = res.used
-        if s.drift_gain > 0 and res.used.any():
+        if s.drift.drift_gain > 0 and res.used.any():
             ku = sub.ks[res.used]
             residual = z[fi][res.used] - predict_uv(m.state, ku, cam)
             for k, r, finite in zip(ku.tolist(), residual, np.isfinite(residual).all(axis=1).tolist()):
                 if finite and not m.features[k].known:
-                    m.features[k].note_residual(r, s.drift_memory)
+                    m.features[k].note_residual(r, s.drift.drift_memory)
         st.matched = res.n_inliers
         st.rescued = int(res.rescued.sum())
         st.outliers = res.n_outliers
@@ -173,9 +175,9 @@ class Measurement:
             if u:
                 h = m.features[k].nis
                 h.append(d)
-                if len(h) > s.consistency_window:
+                if len(h) > s.deletion.consistency_window:
                     del h[0]
-        gate = s.ambiguity_gate_chi2
+        gate = s.startup.ambiguity_gate_chi2
         d2 = np.where(res.used, np.minimum(d2, gate), gate)
         return True, -(0.5 * (d2.sum() + gate * (n - len(fi))))
 
@@ -195,7 +197,7 @@ class Measurement:
         with the camera agrees with itself and would outvote a small far target's corners."""
         votes = np.array([features[k].reliability for k in ks], float)
         if edged is not None:
-            votes[np.asarray(edged, bool)] = self.settings.known_vote
+            votes[np.asarray(edged, bool)] = self.settings.ransac.known_vote
         return votes
 
     def known_by_edges(self, g: np.ndarray, feats: list, z: np.ndarray, uv_pred: np.ndarray) -> np.ndarray:
@@ -217,7 +219,7 @@ class Measurement:
         if found.sum() < 3:
             return placed
         quad = np.where(found[:, None], quad, uv_pred[rows])
-        edged = corners_by_edges(self.cam, g, quad, self.settings.click_search_px)
+        edged = corners_by_edges(self.cam, g, quad, self.settings.startup.click_search_px)
         if edged is not None:
             z[rows] = edged
             placed[rows] = True

@@ -84,8 +84,8 @@ def noise_covariance(dt: float, cfg: SlamConfig, gain: float = 1.0) -> np.ndarra
     """``P_n`` (6, 6) of the impulse ``n = (V, Omega)`` over a step of ``dt`` s: variances
     ``sigma^2 dt motion_noise_interval`` (white accelerations), times ``gain^2``."""
     dt = _check_dt(dt)
-    span = math.sqrt(dt * cfg.motion_noise_interval)
-    sa, sw = gain * cfg.sigma_a * span, gain * cfg.sigma_alpha * span
+    span = math.sqrt(dt * cfg.motion.motion_noise_interval)
+    sa, sw = gain * cfg.motion.sigma_a * span, gain * cfg.motion.sigma_alpha * span
     return np.diag(np.r_[np.full(3, sa * sa), np.full(3, sw * sw)])
 
 
@@ -114,7 +114,7 @@ def impulse_sigma(t: np.ndarray, v: np.ndarray, var_v: np.ndarray, lag: float, t
 def turning(cfg: SlamConfig, rate: float) -> bool:
     """Whether a camera turning at ``rate`` rad/s turns fast enough for the impulses to adapt
     (faster than ``adapt_turn_rate``); both adaptations keep the priors otherwise."""
-    return rate > cfg.adapt_turn_rate
+    return rate > cfg.impulses.adapt_turn_rate
 
 
 def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.ndarray, turn_rate: float) -> float:
@@ -124,13 +124,13 @@ def adapted_sigma_a(cfg: SlamConfig, t: np.ndarray, v: np.ndarray, var_v: np.nda
     ``[sigma_a_min, sigma_a]``; ``sigma_a`` itself when adapting is off, the camera turns slower
     than ``adapt_turn_rate``, or the history spans less than ``adapt_lag`` and half
     ``adapt_window``."""
-    if (not cfg.adapt_sigma_a or not turning(cfg, turn_rate) or len(t) < 2
-            or t[-1] - t[0] < cfg.adapt_lag + 0.5 * cfg.adapt_window):
-        return cfg.sigma_a
-    est = impulse_sigma(t, v, var_v, cfg.adapt_lag, cfg.motion_noise_interval)
+    if (not cfg.impulses.adapt_sigma_a or not turning(cfg, turn_rate) or len(t) < 2
+            or t[-1] - t[0] < cfg.impulses.adapt_lag + 0.5 * cfg.impulses.adapt_window):
+        return cfg.motion.sigma_a
+    est = impulse_sigma(t, v, var_v, cfg.impulses.adapt_lag, cfg.motion.motion_noise_interval)
     if not math.isfinite(est):
-        return cfg.sigma_a
-    return min(max(cfg.adapt_margin * est, cfg.sigma_a_min), cfg.sigma_a)
+        return cfg.motion.sigma_a
+    return min(max(cfg.impulses.adapt_margin * est, cfg.impulses.sigma_a_min), cfg.motion.sigma_a)
 
 
 def adapted_sigma_alpha(cfg: SlamConfig, t: np.ndarray, w: np.ndarray, var_w: np.ndarray) -> float:
@@ -145,29 +145,30 @@ def adapted_sigma_alpha(cfg: SlamConfig, t: np.ndarray, w: np.ndarray, var_w: np
     slower, or the history spans less than half the lag. A steady angular acceleration
     ``alpha`` changes the rate by ``alpha dt`` a step, a ``1 / margin`` sigma impulse at
     ``margin alpha``."""
-    if not cfg.adapt_sigma_alpha or len(t) < 2 or not turning(cfg, float(np.linalg.norm(w[-1]))):
-        return cfg.sigma_alpha
-    j = int(np.searchsorted(t, t[-1] - 1.05 * cfg.adapt_alpha_lag))   # a frame's jitter allowed
+    if not cfg.impulses.adapt_sigma_alpha or len(t) < 2 or not turning(cfg, float(np.linalg.norm(w[-1]))):
+        return cfg.motion.sigma_alpha
+    j = int(np.searchsorted(t, t[-1] - 1.05 * cfg.impulses.adapt_alpha_lag))   # a frame's jitter allowed
     span = float(t[-1] - t[j])
-    if span < 0.5 * cfg.adapt_alpha_lag:
-        return cfg.sigma_alpha
+    if span < 0.5 * cfg.impulses.adapt_alpha_lag:
+        return cfg.motion.sigma_alpha
     d = w[-1] - w[j]
     excess = float(d @ d) - float(var_w[-1]) - float(var_w[j])
     if not math.isfinite(excess):
-        return cfg.sigma_alpha
+        return cfg.motion.sigma_alpha
     est = math.sqrt(max(excess, 0.0)) / span
-    return min(max(cfg.adapt_alpha_margin * est, cfg.sigma_alpha), max(cfg.sigma_alpha_max, cfg.sigma_alpha))
+    imp, sigma_alpha = cfg.impulses, cfg.motion.sigma_alpha
+    return min(max(imp.adapt_alpha_margin * est, sigma_alpha), max(imp.sigma_alpha_max, sigma_alpha))
 
 
 def bias_walk(P_vv: np.ndarray, dt: float, cfg: SlamConfig) -> None:
     """Add the bias random walks' variance over ``dt`` to a 19-number camera block's covariance
     (in place): ``gyro_bias_walk^2 dt`` and ``accel_bias_walk^2 dt`` per axis."""
     if len(P_vv) > BA_SLICE.start:
-        for sl, s in ((BG_SLICE, cfg.gyro_bias_walk), (BA_SLICE, cfg.accel_bias_walk)):
+        for sl, s in ((BG_SLICE, cfg.imu.gyro_bias_walk), (BA_SLICE, cfg.imu.accel_bias_walk)):
             idx = np.arange(sl.start, sl.stop)
             P_vv[idx, idx] += s * s * dt
     if len(P_vv) > TD_INDEX:
-        P_vv[TD_INDEX, TD_INDEX] += cfg.time_offset_walk**2 * dt
+        P_vv[TD_INDEX, TD_INDEX] += cfg.imu.time_offset_walk**2 * dt
 
 
 def process_noise(x_v, dt: float, cfg: SlamConfig, gain: float = 1.0) -> np.ndarray:

@@ -39,10 +39,10 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
     P[10:13, 10:13] = np.eye(3) * sigma_w**2
     if cam_dim < CAMERA_DIM_BIASED or cfg is None:
         return x_v, P
-    for sl, s0 in ((BG_SLICE, cfg.gyro_bias_sigma0), (BA_SLICE, cfg.accel_bias_sigma0)):
+    for sl, s0 in ((BG_SLICE, cfg.imu.gyro_bias_sigma0), (BA_SLICE, cfg.imu.accel_bias_sigma0)):
         P[sl, sl] = np.eye(3) * s0**2
     if cam_dim == CAMERA_DIM_TIMED:
-        x_v[TD_INDEX], P[TD_INDEX, TD_INDEX] = cfg.time_offset0, cfg.time_offset_sigma0**2
+        x_v[TD_INDEX], P[TD_INDEX, TD_INDEX] = cfg.imu.time_offset0, cfg.imu.time_offset_sigma0**2
     if still is not None:
         x_v[BG_SLICE], P[BG_SLICE, BG_SLICE] = still.b_g, np.eye(3) * still.var_g
         J = np.zeros((3, cam_dim))

@@ -66,13 +66,13 @@ class TargetWatch:
             self.target_missed = 0          # not all in view, or partly matched: no evidence of drift
             return None
         self.target_missed += 1
-        if self.target_missed < s.reacquire_after:
+        if self.target_missed < s.reacquire.reacquire_after:
             return None
         self.target_missed = 0              # found or not, look again only after as many frames
         rows.sort(key=lambda j: m.last.ids[j])
         uv_pred = m.last.uv[rows]
         diag = max(np.linalg.norm(uv_pred[2] - uv_pred[0]), np.linalg.norm(uv_pred[3] - uv_pred[1]))
-        quad = find_quadrilateral(g, uv_pred, s.reacquire_search * diag)
+        quad = find_quadrilateral(g, uv_pred, s.reacquire.reacquire_search * diag)
         if quad is None:
             return None
         edged = refine_by_edges(self.cam, g, quad)
@@ -81,20 +81,20 @@ class TargetWatch:
         # shading, not for drift): nothing to correct.
         nu = quad - uv_pred
         d2 = float(innovation_nis(nu, m.last.S[rows]).sum())
-        if d2 < s.reacquire_chi2:
+        if d2 < s.reacquire.reacquire_chi2:
             return None
         try:
-            hyps = pose_hypotheses(self.cam, target.xyz, quad, s.start_pixel_sigma, s.ambiguity_ratio)
+            hyps = pose_hypotheses(self.cam, target.xyz, quad, s.startup.start_pixel_sigma, s.startup.ambiguity_ratio)
         except SlamStartError:
             return None
-        hyps = [h for h in hyps if h.rms_px <= s.start_max_rms_px]
+        hyps = [h for h in hyps if h.rms_px <= s.startup.start_max_rms_px]
         if not hyps:
             return None
         R_now = quat_to_rotation(m.state.x[Q_SLICE])
         hyp = min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - R_now))
         # A drift turns the camera by little; a pose half a turn away is another quadrilateral
         # (or this one's corners in another order), as in the whole-image search.
-        if rotation_angle(R_now, hyp.R_world_cam) > s.loop_max_turn_rad:
+        if rotation_angle(R_now, hyp.R_world_cam) > s.reacquire.loop_max_turn_rad:
             return None
         # A drifted pose has left the map the target anchored: the natural features mapped
         # while the target was matched must match at the target's pose. A quadrilateral that is
@@ -124,8 +124,8 @@ class TargetWatch:
         known = m.known_in_id_order()
         if len(known) != 4:
             return None
-        found = locate_target(g, cam, target.xyz, quat_to_rotation(m.state.x[Q_SLICE]), s.loop_max_turn_rad,
-                              s.start_max_rms_px, s.loop_min_area_px)
+        found = locate_target(g, cam, target.xyz, quat_to_rotation(m.state.x[Q_SLICE]), s.reacquire.loop_max_turn_rad,
+                              s.startup.start_max_rms_px, s.reacquire.loop_min_area_px)
         if not found:
             return None
         pred = predict(m.state, known, cam)
@@ -139,17 +139,17 @@ class TargetWatch:
         if not ask_map:
             # and only if it looks as printed as the target did at the start (not a picture frame)
             found = [f for f in found[:1] if print_contrast(g, f.uv) >= 0.5 * self.target_contrast]
-        for seen in found[:s.loop_trials]:
+        for seen in found[:s.reacquire.loop_trials]:
             if S is not None:
                 nu = seen.uv - pred.uv
-                if float(innovation_nis(nu, S).sum()) < s.reacquire_chi2:
+                if float(innovation_nis(nu, S).sum()) < s.reacquire.reacquire_chi2:
                     return None    # where the filter expects it: the active search will take it
             if not ask_map or self.old_map_agrees(g, m, seen.R_world_cam, seen.r, old):
                 break
         else:
             return None
         try:
-            hyps = pose_hypotheses(cam, target.xyz, seen.uv, s.start_pixel_sigma, s.ambiguity_ratio)
+            hyps = pose_hypotheses(cam, target.xyz, seen.uv, s.startup.start_pixel_sigma, s.startup.ambiguity_ratio)
         except SlamStartError:
             return None
         return min(hyps, key=lambda h: np.linalg.norm(h.R_world_cam - seen.R_world_cam))
@@ -172,19 +172,19 @@ class TargetWatch:
         still gives best scores, spread over the windows and most on their rims (twin
         kitchen-walk at 320x240: 9 of 15 found, 6-7 px off, the pose 37 cm away)."""
         s, cam = self.settings, self.cam
-        if len(ks) < s.loop_min_old:
+        if len(ks) < s.reacquire.loop_min_old:
             return False
         Y = m.world_points()[ks]
         uv = project_points(cam, (Y - r) @ R_world_cam)
-        inside = np.isfinite(uv).all(axis=1) & in_image(cam, np.nan_to_num(uv, nan=-1e9), margin=s.margin_px)
-        if inside.sum() < s.loop_min_old:
+        inside = np.isfinite(uv).all(axis=1) & in_image(cam, np.nan_to_num(uv, nan=-1e9), margin=s.views.margin_px)
+        if inside.sum() < s.reacquire.loop_min_old:
             return False
         ks, Y, uv = ks[inside], Y[inside], uv[inside]
         feats = [m.features[k] for k in ks]
         x_v = np.r_[r, quat_from_rotation(R_world_cam)]
-        S = np.broadcast_to(np.eye(2) * (s.loop_window_px / 3.0) ** 2, (len(ks), 2, 2)).copy()
+        S = np.broadcast_to(np.eye(2) * (s.reacquire.loop_window_px / 3.0) ** 2, (len(ks), 2, 2)).copy()
         z, _, found = match_features(g, feats, np.array([warped(s.warp, f) for f in feats], bool), Y, x_v, cam, uv, S,
-                                     s.match_score, s.max_search_area_px)
-        if int(found.sum()) < max(s.loop_min_old, 0.5 * len(ks)):
+                                     s.views.match_score, s.views.max_search_area_px)
+        if int(found.sum()) < max(s.reacquire.loop_min_old, 0.5 * len(ks)):
             return False
-        return float(np.median(np.linalg.norm(z[found] - uv[found], axis=1))) <= s.loop_window_px / 3.0
+        return float(np.median(np.linalg.norm(z[found] - uv[found], axis=1))) <= s.reacquire.loop_window_px / 3.0

@@ -40,17 +40,18 @@ class Relocaliser:
         # Points first; inverse-depth features too (a rotating head converts few), at their
         # current depth: PnP-RANSAC and the active search decide whether those are good enough.
         candidates = list(range(m.state.n_features))
-        if len(candidates) < s.reloc_min_inliers:
+        if len(candidates) < s.relocalisation.reloc_min_inliers:
             return None
         # An edge's template matches anywhere along the edge in a whole-image search: features
         # whose matches are elongated (templates.match_noise_shape) come after the rest.
         rank = sorted(candidates, key=lambda k: (not m.features[k].known, self.elongated(m, k),
                                                  m.state.kinds[k] != POINT, -m.features[k].successes))
-        ks = np.array(rank[:s.reloc_candidates])
+        rl = s.relocalisation
+        ks = np.array(rank[:rl.reloc_candidates])
         found = relocalise(g, [m.features[k].template for k in ks], m.world_points()[ks], self.cam,
-                           s.match_score, min_inliers=s.reloc_min_inliers, Y_cov=m.point_covariances(ks),
+                           s.views.match_score, min_inliers=rl.reloc_min_inliers, Y_cov=m.point_covariances(ks),
                            sigma_px=self.sigma_pixel)
         if found is None:
             return None
         return PoseHypothesis(found.R_world_cam, found.r,
-                              np.diag(np.r_[np.full(3, s.reloc_sigma_rad**2), np.full(3, s.reloc_sigma_m**2)]), 0.0, 0.0)
+                              np.diag(np.r_[np.full(3, rl.reloc_sigma_rad**2), np.full(3, rl.reloc_sigma_m**2)]), 0.0, 0.0)

@@ -245,10 +245,10 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     check_lens_invertible(seq.camera)
     saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
     natural = saved is None and seq.target is None
-    if natural and seq.imu is not None and settings.use_imu:
+    if natural and seq.imu is not None and settings.imu.use_imu:
         # The map's unit is arbitrary or the depth's, and its frame the first camera's, which the
         # IMU's gravity does not know: camera only (the IMU's scale and gravity are not used yet).
-        settings = replace(settings, use_imu=False)
+        settings = replace(settings, imu=replace(settings.imu, use_imu=False))
         if progress:
             print("slam: natural start: the IMU is not used (camera only)")
     out = Path(out)
@@ -303,7 +303,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
                 st = slam.process(f.image, f.t)
                 if st.lost and not prev_lost:
                     progress_bar.write(f"slam: track lost at frame {st.frame} (t = {st.t:.3f} s): fewer than 3 inliers for "
-                               f"{slam.settings.lost_after} frames; re-localising against the map")
+                               f"{slam.settings.relocalisation.lost_after} frames; re-localising against the map")
                 if prev_lost and not st.lost:
                     progress_bar.write(f"slam: camera located in the map at frame {st.frame} (t = {st.t:.3f} s)")
         for msg in slam.messages[said:]:

@@ -83,7 +83,7 @@ class MonoSLAM:
 
     camera : the intrinsics and lens model. cfg, settings : the filter's and the map's
     parameters. imu : whether an IMU will drive the prediction (then, with
-    ``settings.imu_biases``, the camera block carries bias states). seed : the RANSAC's random
+    ``settings.imu.imu_biases``, the camera block carries bias states). seed : the RANSAC's random
     order (per frame), so a run is repeatable.
     """
 
@@ -93,12 +93,12 @@ class MonoSLAM:
         self.cfg = cfg
         self.settings = settings
         self.seed = seed
-        self.use_imu = bool(imu) and settings.use_imu
+        self.use_imu = bool(imu) and settings.imu.use_imu
         self.cam_dim = CAMERA_DIM
-        if self.use_imu and settings.imu_biases:
-            self.cam_dim = CAMERA_DIM_TIMED if settings.imu_time_offset else CAMERA_DIM_BIASED
+        if self.use_imu and settings.imu.imu_biases:
+            self.cam_dim = CAMERA_DIM_TIMED if settings.imu.imu_time_offset else CAMERA_DIM_BIASED
         # Templates and distances scale with the image (15 px at 640 px wide).
-        t = int(round(settings.template_px * camera.width / 640.0))
+        t = int(round(settings.measure.template_px * camera.width / 640.0))
         self.template_px = max(t + (1 - t % 2), 7)
         self._tracks: list[Track] = []
         self.ids = FeatureIds()
@@ -107,13 +107,14 @@ class MonoSLAM:
         self.stats: list[FrameStats] = []
         self.imu = ImuStream(settings)
         self.messages: list[str] = []      # what the console should say (IMU problems, ...)
-        self.nis_limit = float(chi2.ppf(settings.consistency_confidence, 2 * settings.consistency_window))
-        self.linearity_threshold = (settings.linearity_threshold if camera.width >= NARROW_WIDTH_PX
-                                    else settings.linearity_threshold_narrow)
+        d = settings.deletion
+        self.nis_limit = float(chi2.ppf(d.consistency_confidence, 2 * d.consistency_window))
+        self.linearity_threshold = (settings.inverse_depth.linearity_threshold if camera.width >= NARROW_WIDTH_PX
+                                    else settings.inverse_depth.linearity_threshold_narrow)
         self.refined_target: RefinedTarget | None = None
         self.target_contrast = 0.0              # the target's print contrast in the first image
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave
-        self.noise = ImageNoise(settings.noise_every, settings.match_score)
+        self.noise = ImageNoise(settings.measure.noise_every, settings.views.match_score)
         self.scale_source = "target"            # what fixed the map's unit: target, map, depth, imu or arbitrary
 
     # -------------------------------------------------------------- views
@@ -217,14 +218,14 @@ class MonoSLAM:
             still = still_biases(self.imu.rows, t, q, self.settings, self.cfg)
             if still is not None:
                 self.still = still
-        x_v, P = camera_prior(self.cam_dim, hyp.r, q, pose_covariance(q, hyp.cov), self.settings.init_sigma_v,
-                              self.settings.init_sigma_w, self.cfg, still)
+        x_v, P = camera_prior(self.cam_dim, hyp.r, q, pose_covariance(q, hyp.cov), self.settings.startup.init_sigma_v,
+                              self.settings.startup.init_sigma_w, self.cfg, still)
         return State.from_camera(x_v, P)
 
     def restart_camera(self, state: State, hyp: PoseHypothesis, w: np.ndarray | None = None) -> None:
         """Put the camera at a pose found against the map (re-localisation), at rest (or turning
         at ``w`` (3,), rad/s), with no correlation to the map; bias estimates are kept."""
-        restart_at(state, hyp, self.settings.init_sigma_v, self.settings.init_sigma_w, w)
+        restart_at(state, hyp, self.settings.startup.init_sigma_v, self.settings.startup.init_sigma_w, w)
 
     def _new_track(self, state: State, features: list[MapFeature], localised: bool = True) -> Track:
         return Track(SlamMap(state, features), self.cam, self.cfg, self.settings, seed=self.seed,
@@ -238,7 +239,7 @@ class MonoSLAM:
         the corners nearly as well) found with its covariance, and its points inserted as
         features. Returns the refined target. Raises :class:`SlamStartError`."""
         g = grey(image)
-        s = self.settings
+        s = self.settings.startup
         ref, hyps = start_hypotheses(self.cam, g, target, s.click_search_px, s.start_pixel_sigma, s.start_max_rms_px,
                                      s.ambiguity_ratio)
         self.refined_target = ref
@@ -324,7 +325,7 @@ class MonoSLAM:
     def add_imu(self, rows) -> None:
         """Queue IMU rows (k, 7) ``[t, wx, wy, wz, ax, ay, az]`` (camera frame, imu.txt) in time
         order; bad samples are dropped, counted and said (``messages``)."""
-        if not self.settings.use_imu:
+        if not self.settings.imu.use_imu:
             return
         for msg in self.imu.add(rows):
             self.messages.append(msg)
@@ -364,7 +365,8 @@ class MonoSLAM:
         scores = np.array([tr.score for tr in self._tracks])
         best = int(np.argmax(scores))
         gap = scores[best] - np.delete(scores, best).max()
-        if gap > 2 * math.log(self.settings.ambiguity_ratio) or self.frame >= self.settings.ambiguity_frames:
+        su = self.settings.startup
+        if gap > 2 * math.log(su.ambiguity_ratio) or self.frame >= su.ambiguity_frames:
             self._winner = best
             self._tracks = [self._tracks[best]]
             self.messages.append(f"slam: planar target ambiguity resolved at frame {self.frame} "
@@ -373,7 +375,7 @@ class MonoSLAM:
     def _imu_rows(self, t_prev: float, t: float):
         """The IMU rows covering every track's prediction to the frame at ``t`` (None: not
         covered, or no IMU)."""
-        if not (self.settings.use_imu and len(self.imu.rows)):
+        if not (self.settings.imu.use_imu and len(self.imu.rows)):
             return None
         spans = [tr.span(t_prev, t) for tr in self._tracks] or [(t_prev, t)]
         return self.imu.covering(min(a for a, _ in spans), max(b for _, b in spans))
@@ -386,7 +388,8 @@ class MonoSLAM:
         self.frame += 1
         rows = self._imu_rows(self.t_prev, t)
         for tr in self._tracks:
-            tr.propagate(self.t_prev, t, rows, self.settings.lost_noise_gain if tr.lost else 1.0, self.imu.covered_until)
+            gain = self.settings.relocalisation.lost_noise_gain if tr.lost else 1.0
+            tr.propagate(self.t_prev, t, rows, gain, self.imu.covered_until)
         self.t_prev = t
         st = FrameStats(self.frame, t, skipped=why, lost=self.lost, map_size=self.state.n_features)
         self.stats.append(st)
@@ -400,4 +403,4 @@ class MonoSLAM:
     def stay_in_view(self, x_v: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(k,) bool: whether each pixel's point (at 1 m) is still inside the image, ``margin_px``
         in, after 0.6 s of the motion model's constant velocity (mapping.stay_in_view)."""
-        return stay_in_view(self.cam, self.settings.margin_px, x_v, uv)
+        return stay_in_view(self.cam, self.settings.views.margin_px, x_v, uv)

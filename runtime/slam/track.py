@@ -45,7 +45,7 @@ class Track:
         self.watch = TargetWatch(cam, settings, target, target_contrast, cfg.sigma_pixel)
         self.relocaliser = Relocaliser(cam, settings, cfg.sigma_pixel)
         self.impulses = ImpulseAdapter(cfg)
-        self.low_matches = 0 if localised else settings.lost_after
+        self.low_matches = 0 if localised else settings.relocalisation.lost_after
         self.status = TrackingStatus.TRACKING if localised else TrackingStatus.INITIALISING
         self.score = 0.0
 
@@ -68,7 +68,7 @@ class Track:
 
     @property
     def lost(self) -> bool:
-        return self.low_matches >= self.settings.lost_after
+        return self.low_matches >= self.settings.relocalisation.lost_after
 
     @property
     def localised(self) -> bool:
@@ -116,7 +116,7 @@ class Track:
             records = [(f.attempts, f.successes, f.drift) for f in self.features]
             saved = self.state.snapshot()
             st.relocalised = self._relocalise(g)
-        if s.warp != "known" and frame % s.normals_every == 0:
+        if s.warp != "known" and frame % s.normals.normals_every == 0:
             self.mapping.normals_from_map(self.map)     # neighbours' planes change slowly: every few frames
         closed = not lost and self._close_loop(g, st, frame)
         if not closed:
@@ -125,18 +125,18 @@ class Track:
             if not self._confirmed(st):
                 self._roll_back(saved, records, st)
                 return
-        elif s.reacquire_after > 0 and not closed:
+        elif s.reacquire.reacquire_after > 0 and not closed:
             self._watch_target(g, st, frame)
-        if s.normals_per_frame > 0 and s.warp != "known" and not lost and not closed:
+        if s.normals.normals_per_frame > 0 and s.warp != "known" and not lost and not closed:
             self.mapping.normals_from_views(g, self.map)     # the matches measured in this frame
         self._delete(g, st, frame)
         # MonoSLAM adds features when too few are actually observed (matched), not predicted.
-        if st.matched < s.visible_min:
+        if st.matched < s.measure.visible_min:
             self.mapping.add(g, self.map, st, frame, st.matched)
         if not lost:
             self.impulses.adapt(t, self.state)
-        if frame % self.cfg.psd_check_every == 0:
-            self.state.check(f"frame {frame}", self.cfg.psd_rel_tol)
+        if frame % self.cfg.guard.psd_check_every == 0:
+            self.state.check(f"frame {frame}", self.cfg.guard.psd_rel_tol)
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
         self.status = (TrackingStatus.RELOCALISED if lost else TrackingStatus.LOST if self.lost
                        else TrackingStatus.RECENTLY_LOST if self.low_matches else TrackingStatus.TRACKING)
@@ -148,10 +148,11 @@ class Track:
         cfg, imp = self.cfg, self.impulses
         if lost:
             imp.reset()              # lost, the prior: nothing says how the camera moves now
-        st.sigma_a, st.sigma_alpha = imp.motion_cfg.sigma_a, imp.motion_cfg.sigma_alpha
+        st.sigma_a, st.sigma_alpha = imp.motion_cfg.motion.sigma_a, imp.motion_cfg.motion.sigma_alpha
         before = (self.state.snapshot(camera_only=True)
-                  if cfg.adapt_onset and not lost and imp.adapting(t_prev) and imp.at_priors else None)
-        st.imu = self.propagate(t_prev, t, imu_rows, self.settings.lost_noise_gain if lost else 1.0, covered_until)
+                  if cfg.impulses.adapt_onset and not lost and imp.adapting(t_prev) and imp.at_priors else None)
+        gain = self.settings.relocalisation.lost_noise_gain if lost else 1.0
+        st.imu = self.propagate(t_prev, t, imu_rows, gain, covered_until)
         return before
 
     def _measure(self, g: np.ndarray, st: FrameStats, frame: int, retry_dt: float | None = None,
@@ -173,7 +174,8 @@ class Track:
             self.state.restore(before)
             self.impulses.set(*turn)
             st.onset, st.retried = True, False
-            st.sigma_a, st.sigma_alpha = self.impulses.motion_cfg.sigma_a, self.impulses.motion_cfg.sigma_alpha
+            turned = self.impulses.motion_cfg.motion
+            st.sigma_a, st.sigma_alpha = turned.sigma_a, turned.sigma_alpha
             self.propagate(t_prev, t, None, 1.0)
             self._measure(g, st, frame, retry_dt=t - t_prev)
 
@@ -181,19 +183,19 @@ class Track:
         """Every ``reloc_every`` lost frames (every frame before the first localisation): the
         camera restarted at a pose found against the map (relocalisation.Relocaliser)."""
         s = self.settings
-        every = 1 if not self.localised else s.reloc_every
-        if (self.low_matches - s.lost_after) % every != 0:
+        every = 1 if not self.localised else s.relocalisation.reloc_every
+        if (self.low_matches - s.relocalisation.lost_after) % every != 0:
             return False
         hyp = self.relocaliser.relocalise(g, self.map)
         if hyp is None:
             return False
-        restart_at(self.state, hyp, s.init_sigma_v, s.init_sigma_w)
+        restart_at(self.state, hyp, s.startup.init_sigma_v, s.startup.init_sigma_w)
         return True
 
     def _confirmed(self, st: FrameStats) -> bool:
         """Whether a lost frame's pose is confirmed by the active search's inliers."""
-        s = self.settings
-        return not st.matched < max(s.reloc_min_confirmed, s.reloc_confirm_fraction * st.searched)
+        rl = self.settings.relocalisation
+        return not st.matched < max(rl.reloc_min_confirmed, rl.reloc_confirm_fraction * st.searched)
 
     def _roll_back(self, saved, records: list, st: FrameStats) -> None:
         """A lost frame not confirmed: the state and the features' records as before it."""
@@ -219,8 +221,8 @@ class Track:
         is restarted there and the frame measured. Returns whether it was."""
         s = self.settings
         away = frame - self.watch.target_seen
-        if not (s.reacquire_after > 0 and s.loop_after > 0 and away >= s.loop_after
-                and (away - s.loop_after) % s.loop_every == 0):
+        if not (s.reacquire.reacquire_after > 0 and s.reacquire.loop_after > 0 and away >= s.reacquire.loop_after
+                and (away - s.reacquire.loop_after) % s.reacquire.loop_every == 0):
             return False
         hyp = self.watch.close_loop(g, self.map)
         if hyp is None:
@@ -243,7 +245,7 @@ class Track:
         filter's angular velocity, which the drift leaves nearly right, is a better guess than
         rest; its linear velocity is the drift's own and is reset with the pose."""
         s = self.settings
-        restart_at(self.state, hyp, s.init_sigma_v, s.init_sigma_w, w=self.state.x[W_SLICE].copy())
+        restart_at(self.state, hyp, s.startup.init_sigma_v, s.startup.init_sigma_w, w=self.state.x[W_SLICE].copy())
         drifted = self.watch.drifted(self.map)
         if drifted:
             self.map.remove(drifted, st)

@@ -126,13 +126,13 @@ class SlamMap:
         the view moves from the first (a wrong plane guess warps it wrongly), ``1 + (angle /
         view_noise_angle)^2 + (log range ratio / log view_noise_scale)^2``; the target's points,
         printed corners whose plane is known, are located more closely (``known_sigma_px``)."""
-        s = settings
+        s = settings.views
         r0s, known = self.first_views()[:2]
         return _views_kernel(pred.uv, pred.valid, Y, self.state.r, r0s, known, float(cam.width),
                              float(cam.height), float(s.margin_px), math.cos(math.radians(s.max_view_angle_deg)),
                              math.cos(math.radians(s.max_view_angle_known_deg)), float(s.max_range_ratio),
                              float(s.max_range_ratio_known), float(s.view_noise_angle_deg),
-                             math.log(s.view_noise_scale), (s.known_sigma_px / sigma_pixel) ** 2)
+                             math.log(s.view_noise_scale), (settings.startup.known_sigma_px / sigma_pixel) ** 2)
 
     def first_views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every feature's first-view centre (N, 3), whether it is a target point (N,), its match

@@ -1,0 +1,47 @@
+"""The SLAM's settings as frozen groups, and the one mapping that keeps the old flat names
+working (runtime/slam/config.py)."""
+
+from dataclasses import FrozenInstanceError, replace
+
+import pytest
+
+from runtime.slam.config import DEFAULT_CONFIG, MAP_FLAT, SLAM_FLAT, MapSettings, SlamConfig, with_overrides
+
+
+def test_a_flat_override_lands_in_its_group_and_keeps_the_other_groups():
+    s = replace(MapSettings().with_measure(30), use_imu=False, ransac_confidence=0.95, features="particles")
+    assert s.imu.use_imu is False and s.use_imu is False
+    assert s.ransac.confidence == 0.95 and s.ransac_confidence == 0.95
+    assert s.features == "particles"
+    assert (s.measure.measure_max, s.measure.visible_min) == (30, 24)      # with_measure's group survives
+    assert s.imu.imu_biases is True and s.ransac.threshold_px == 2.0       # the rest of each group unchanged
+    assert with_overrides(MapSettings(), reloc_every=7).relocalisation.reloc_every == 7
+    assert MapSettings(use_imu=False) == replace(MapSettings(), imu=replace(MapSettings().imu, use_imu=False))
+
+
+def test_the_filter_s_config_maps_its_flat_names_too():
+    c = replace(DEFAULT_CONFIG, time_offset0=0.02, adapt_onset=False, sigma_pixel=2.0)
+    assert (c.imu.time_offset0, c.impulses.adapt_onset, c.sigma_pixel) == (0.02, False, 2.0)
+    assert c.motion == DEFAULT_CONFIG.motion and c.guard == DEFAULT_CONFIG.guard
+    assert SlamConfig(sigma_a=2.5).motion.sigma_a == 2.5 and SlamConfig(sigma_a=2.5).sigma_a == 2.5
+
+
+def test_every_flat_name_reads_its_group_s_value():
+    s = MapSettings()
+    for name, (group, field) in MAP_FLAT.items():
+        assert getattr(s, name) == getattr(getattr(s, group), field)
+    assert len(MAP_FLAT) + 2 == 93 and len(SLAM_FLAT) + 1 == 29       # every old field, plus the top-level ones
+    assert set(MapSettings().flat()) == set(MAP_FLAT) | {"features", "warp"}
+
+
+def test_unknown_names_and_bad_values_are_refused_naming_the_place():
+    with pytest.raises(TypeError, match="no setting 'use_imus'.*imu"):
+        MapSettings(use_imus=False)
+    with pytest.raises(ValueError, match="MapSettings.reloc_sigma_m"):
+        MapSettings(reloc_sigma_m=-1.0)
+    with pytest.raises(ValueError, match="SlamConfig.time_offset0"):
+        SlamConfig(time_offset0=float("nan"))
+    with pytest.raises(ValueError, match="visible_min"):
+        MapSettings(visible_min=70)
+    with pytest.raises(FrozenInstanceError):
+        MapSettings().imu.use_imu = False
