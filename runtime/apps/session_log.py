@@ -27,6 +27,7 @@ killed run leaves only the ``.part`` file (readable up to its last chunk by ``mc
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -99,11 +100,28 @@ def pose_covariance(x_v: np.ndarray, P_vv: np.ndarray) -> np.ndarray:
     return J @ np.asarray(P_vv, float)[:7, :7] @ J.T
 
 
+def _sink(method):
+    """A stream's method that never raises into the run: on a failure (a full disk, a time
+    before 0) the log says so once, keeps what it wrote as session.mcap.part and stops."""
+    @functools.wraps(method)
+    def logged(self, *args, **kwargs):
+        if self._closed:
+            return
+        try:
+            method(self, *args, **kwargs)
+        except Exception as e:  # noqa: BLE001 - a sink never stops the run it logs
+            self.error = f"session.mcap: logging stopped ({e}); the run's other files are unaffected"
+            print(f"warning: {self.error}")
+            self.abort()
+    return logged
+
+
 class SessionLog:
     """A session.mcap being written (see the module's table of topics).
 
     path : the folder's ``session.mcap``. jpeg_quality : the images' JPEG quality (0-100).
     Every method takes t, the sensor's time in seconds; non-finite poses and points are skipped.
+    A failure to write never reaches the caller: it is said once and the log stops (``error``).
     """
 
     def __init__(self, path: str | Path, jpeg_quality: int = JPEG_QUALITY):
@@ -118,6 +136,7 @@ class SessionLog:
         self._seq: dict[str, int] = {}
         self.counts: dict[str, int] = {}
         self._closed = False
+        self.error = ""
 
     # ------------------------------------------------------------------ writing
     def _channel(self, topic: str, message_class=None) -> int:
@@ -141,6 +160,7 @@ class SessionLog:
         self._put(topic, ns, msg.SerializeToString(), type(msg))
 
     # ------------------------------------------------------------------ the streams
+    @_sink
     def image(self, t: float, img: np.ndarray) -> None:
         """img : (H, W, 3) uint8 RGB or (H, W) grey."""
         ns = stamp_ns(t)
@@ -150,6 +170,7 @@ class SessionLog:
             self._proto("/camera/image", ns, CompressedImage(timestamp=_timestamp(ns), frame_id=CAMERA,
                                                              data=jpg.tobytes(), format="jpeg"))
 
+    @_sink
     def pose(self, t: float, T_world_cam: np.ndarray, cov6: np.ndarray | None = None) -> None:
         """T_world_cam (4, 4) m; cov6 (6, 6) its covariance (see :func:`pose_covariance`) or None."""
         T = np.asarray(T_world_cam, float)
@@ -162,12 +183,14 @@ class SessionLog:
             self._proto("/slam/odometry", ns, Odometry(timestamp=_timestamp(ns), frame_id=WORLD, body_frame_id=CAMERA,
                                                        pose=pose, pose_covariance=np.ravel(cov6).tolist()))
 
+    @_sink
     def trajectory(self, t: float, T_world_cam: np.ndarray) -> None:
         """The whole run's poses (N, 4, 4), as one message stamped t."""
         ns = stamp_ns(t)
         self._proto("/slam/trajectory", ns, PosesInFrame(timestamp=_timestamp(ns), frame_id=WORLD,
                                                          poses=[_pose(T) for T in np.asarray(T_world_cam, float)]))
 
+    @_sink
     def map(self, t: float, xyz: np.ndarray) -> None:
         """xyz (N, 3) the map's points, world m (float32 in the cloud)."""
         ns = stamp_ns(t)
@@ -178,6 +201,7 @@ class SessionLog:
             timestamp=_timestamp(ns), frame_id=WORLD, pose=_pose(np.eye(4)), point_stride=12,
             fields=[PackedElementField(name=n, offset=4 * i, type=F32) for i, n in enumerate("xyz")], data=p.tobytes()))
 
+    @_sink
     def joints(self, t: float, q_cmd: np.ndarray | None, q_meas: np.ndarray | None) -> None:
         """The head's joint angles (3,) rad, commanded and measured (either may be None)."""
         ns = stamp_ns(t)
@@ -186,6 +210,7 @@ class SessionLog:
                 self._proto(topic, ns, JointStates(timestamp=_timestamp(ns), joints=[
                     JointState(name=n, position=float(v)) for n, v in zip(JOINT_NAMES, np.ravel(q))]))
 
+    @_sink
     def imu(self, rows: np.ndarray) -> None:
         """rows (k, 7) [t, wx, wy, wz, ax, ay, az]: one message per sample, at its own stamp."""
         for r in np.asarray(rows, float).reshape(-1, 7):
@@ -193,6 +218,7 @@ class SessionLog:
                 self._put("/imu", stamp_ns(r[0]), json.dumps(
                     {"t": float(r[0]), "gyro": r[1:4].tolist(), "accel": r[4:7].tolist()}).encode())
 
+    @_sink
     def target(self, t: float, xyz: np.ndarray) -> None:
         """The gaze target (3,) world m (skipped when NaN: no target)."""
         p = np.asarray(xyz, float).reshape(3)
@@ -206,10 +232,12 @@ class SessionLog:
         ns = stamp_ns(t)
         self._proto(topic, ns, Log(timestamp=_timestamp(ns), level=level, message=str(text), name=name))
 
+    @_sink
     def prompt(self, t: float, text: str) -> None:
         """A prompt to the wearer."""
         self._log("/prompts", t, text, Log.WARNING, "wearer")
 
+    @_sink
     def event(self, t: float, text: str, refused: bool = False) -> None:
         """An event (a station action, a run's end); ``refused`` logs it as an error."""
         self._log("/events", t, text, Log.ERROR if refused else Log.INFO, "wvr")
@@ -217,22 +245,27 @@ class SessionLog:
     # ------------------------------------------------------------------ ending
     def close(self, ended: str = "complete") -> Path:
         """Finish the file (index, summary, the message counts and ``ended`` as metadata
-        "session") and rename it into place; returns its path. A second call does nothing."""
+        "session") and rename it into place; returns its path (None if logging had stopped).
+        A second call does nothing."""
         if not self._closed:
             self._closed = True
             self._w.add_metadata("session", {"ended": ended, **{k: str(v) for k, v in self.counts.items()}})
             self._w.finish()
             self._fh.close()
             self.part.replace(self.path)
-        return self.path
+        return self.path if self.path.exists() else None
 
     def abort(self) -> None:
         """A run that failed: finish what was written but leave it as ``session.mcap.part``."""
         if not self._closed:
             self._closed = True
-            self._w.add_metadata("session", {"ended": "failed"})
-            self._w.finish()
-            self._fh.close()
+            try:
+                self._w.add_metadata("session", {"ended": "failed"})
+                self._w.finish()
+            except Exception:  # noqa: BLE001 - what was written stays in the .part file
+                pass
+            finally:
+                self._fh.close()
 
 
 class LoopRecorder:

@@ -180,6 +180,16 @@ def test_an_unclosed_log_leaves_no_session_mcap_and_a_closed_one_replaces_the_ol
         stamp_ns(-1.0)
 
 
+def test_a_failing_log_stops_itself_and_never_raises_into_the_run(tmp_path, capsys):
+    log = SessionLog(tmp_path / SESSION_FILE)
+    log.pose(0.1, np.eye(4))
+    log.image(-0.5, np.zeros((4, 4, 3), np.uint8))          # a time MCAP cannot hold: said, not raised
+    assert "logging stopped" in capsys.readouterr().out and log.error
+    log.pose(0.2, np.eye(4))
+    assert log.close() is None
+    assert not (tmp_path / SESSION_FILE).exists() and (tmp_path / (SESSION_FILE + ".part")).exists()
+
+
 def test_station_session_logs_the_operators_actions(tmp_path):
     from test_station_api import StillRobot
 
