@@ -139,6 +139,20 @@ def test_closed_loop_session_holds_images_joints_imu_pose_and_target(twin, tmp_p
     assert meta["session"]["ended"] == "complete"
 
 
+def test_closed_loop_session_holds_the_wearers_prompts_and_the_refusal(twin, tmp_path):
+    run_on_twin(twin, "workbench-static", Task("fixate", np.array([[0.0, 2.0, 0.9]])), tmp_path, seconds=0.5,
+                progress=False)
+    topics, _ = read(tmp_path / SESSION_FILE)
+    with open(tmp_path / "prompts.csv") as fh:
+        prompts = list(csv.DictReader(fh))
+    assert prompts
+    assert [m[2].message for m in topics["/prompts"]] == [p["text"] for p in prompts]
+    # prompts.csv keeps milliseconds; the log, the prompt's own stamp.
+    np.testing.assert_allclose([m[0] * 1e-9 for m in topics["/prompts"]], [float(p["t"]) for p in prompts],
+                               atol=5e-4)
+    assert any("refused" in m[2].message for m in topics["/events"])
+
+
 def test_pose_covariance_carries_the_quaternion_to_world_rotation_angles():
     rng = np.random.default_rng(1)
     q = Rotation.random(random_state=2).as_quat()                # x y z w
