@@ -20,6 +20,9 @@ topic              schema                       what
 /events            foxglove.Log                 station actions and run events
 ================== ============================ =============================================
 
+/slam/pose and /slam/map are the filter's as it ran; /slam/trajectory is trajectory.tum's (after
+a natural start's IMU scale and gravity, where that was used).
+
 A sink, never on the control path: it only reads what it is given. Never half-written: it is
 written as ``session.mcap.part`` and renamed to ``session.mcap`` by :meth:`SessionLog.close`; a
 killed run leaves only the ``.part`` file (readable up to its last chunk by ``mcap recover``).

@@ -293,7 +293,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     if video:
         (out / "video").mkdir(exist_ok=True)
     log = SessionLog(out / SESSION_FILE) if session_log else None
-    times_logged = -np.inf
+    imu_logged_to = -np.inf
     bar = progress_bar(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
     for i in range(i0, n):
         if i > i0:
@@ -320,9 +320,9 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             poses.append(T)
         if log is not None:
             if seq.imu is not None:             # the IMU's samples up to this frame, each at its stamp
-                k0, k1 = np.searchsorted(seq.imu.t, [times_logged, f.t], side="right")
+                k0, k1 = np.searchsorted(seq.imu.t, [imu_logged_to, f.t], side="right")
                 log.imu(np.column_stack([seq.imu.t[k0:k1], seq.imu.gyro[k0:k1], seq.imu.accel[k0:k1]]))
-                times_logged = f.t
+                imu_logged_to = f.t
             if f.image is not None:
                 log.image(f.t, f.image)
             st = slam.state
