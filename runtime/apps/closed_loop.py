@@ -42,6 +42,7 @@ from kinematics.tomlfile import read_toml
 from ..gaze import ControllerSettings, GazeController, GazeRefused
 from ..gaze.modes import Stabilise
 from .recentre import Recentring
+from .session_log import SESSION_FILE, LoopRecorder
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
@@ -432,7 +433,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                     seconds: float | None = None, settings: ControllerSettings = ControllerSettings(),
                     progress: bool = True, truth: TruthSource | None = None, label: str = "",
                     task_info: dict | None = None, on_period: Callable[[Observation, JointCommand], None] | None = None,
-                    on_end: Callable[[], None] | None = None) -> dict:
+                    on_end: Callable[[], None] | None = None, session_log: bool = True) -> dict:
     """Run ``task`` on ``robot`` for ``seconds`` (None: until the robot's session ends or Ctrl-C);
     write joints.csv, prompts.csv, task.toml, trajectory.tum (SLAM), report.md and
     summary.json into ``out``; return the summary.
@@ -443,7 +444,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     every period (a session recorder). ``on_end()`` : called as soon as the loop stops, however it
     stops, before anything is scored or written (a rig's safe stop: the head is not left holding
     while the plots are drawn). ``label`` : what the report calls the robot's setting
-    (the scenario); ``task_info`` : extra keys for task.toml.
+    (the scenario); ``task_info`` : extra keys for task.toml. ``session_log`` : also session.mcap
+    (images, IMU, joints, SLAM's pose and map, target, prompts, events; runtime.apps.session_log).
     """
     from .evaluate import evaluate
     from .report import write_outputs
@@ -456,6 +458,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     truths = []
     obs = robot.reset()
     loop.start(obs)
+    recorder = LoopRecorder(out / SESSION_FILE) if session_log else None
     interrupted, fault = None, None
     bar = progress_bar(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
@@ -468,6 +471,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
             if truth is not None:
                 truths.append(truth.truth())
             cmd = loop.step(obs)
+            if recorder is not None:
+                recorder.period(loop, obs, cmd)
             if on_period is not None:
                 on_period(obs, cmd)
             bar.update(1)
@@ -488,6 +493,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
         bar.close()
         if on_end is not None:
             on_end()
+        if recorder is not None:
+            recorder.close(interrupted or "complete")
     log = loop.log
     summary = {"scenario": label or info.name, "task": task.kind, "seconds": float(log.rows[-1].t - log.rows[0].t)
                if len(log.rows) > 1 else 0.0, "frames": len(log.rows),

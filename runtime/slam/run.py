@@ -231,10 +231,13 @@ def imu_notes(seq, slam: MonoSLAM) -> None:
 
 def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = None, video: bool = False,
              cfg: SlamConfig = DEFAULT_CONFIG, settings: MapSettings = MapSettings(), progress: bool = True,
-             save_map: str | Path | None = None, map_path: str | Path | None = None, seed: int = 0) -> SlamRun:
+             save_map: str | Path | None = None, map_path: str | Path | None = None, seed: int = 0,
+             session_log: bool = True) -> SlamRun:
     """Run over a sequence and write trajectory.tum, map.csv, stats.json (and video/ with
     ``video``) into ``out``; ``save_map`` : also save the final map there (map_io.py);
-    ``map_path`` : start from a saved map instead of the target (re-localise in its frame)."""
+    ``map_path`` : start from a saved map instead of the target (re-localise in its frame);
+    ``session_log`` : also session.mcap (images, poses, covariance, map; runtime.apps.session_log)."""
+    from ..apps.session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance
     from . import map_io
 
     if max_frames is not None and max_frames < 1:
@@ -289,6 +292,8 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     out.mkdir(parents=True, exist_ok=True)          # after the start: a refused start writes nothing
     if video:
         (out / "video").mkdir(exist_ok=True)
+    log = SessionLog(out / SESSION_FILE) if session_log else None
+    imu_logged_to = -np.inf
     bar = progress_bar(total=n, initial=i0 + 1, desc="slam", unit="frame", disable=not progress)
     for i in range(i0, n):
         if i > i0:
@@ -313,6 +318,17 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         if np.isfinite(T).all():
             times.append(f.t)
             poses.append(T)
+        if log is not None:
+            if seq.imu is not None:             # the IMU's samples up to this frame, each at its stamp
+                k0, k1 = np.searchsorted(seq.imu.t, [imu_logged_to, f.t], side="right")
+                log.imu(np.column_stack([seq.imu.t[k0:k1], seq.imu.gyro[k0:k1], seq.imu.accel[k0:k1]]))
+                imu_logged_to = f.t
+            if f.image is not None:
+                log.image(f.t, f.image)
+            st = slam.state
+            log.pose(f.t, T, pose_covariance(st.x_v, st.P[:st.cam_dim, :st.cam_dim]) if st is not None else None)
+            if (i - i0) % MAP_EVERY == 0 or i == n - 1:
+                log.map(f.t, slam.world_points())
         if video and f.image is not None:
             frame = _annotate(f.image, slam)
             cv2.imwrite(str(out / "video" / f"{i:06d}.png"), frame)
@@ -341,6 +357,8 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
         write_trajectory(out / "trajectory.tum", np.array(times), T,
                          header="MonoSLAM camera-to-world poses (optical frame), TUM order")
+        if log is not None:
+            log.trajectory(times[-1], T)
     else:
         (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
     write_map_csv(out / "map.csv", slam, *((R_out, s_out) if slam.scale_source == "imu" else ()))
@@ -370,4 +388,6 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits,
         imu_scale={k: v for k, v in imu_scale.items() if k != "said"} if imu_scale else None)
     (out / "stats.json").write_text(json.dumps({"totals": asdict(result), "frames": per_frame}, indent=1))
+    if log is not None:
+        log.close()
     return result

@@ -319,7 +319,7 @@ def test_the_recording_is_marked_incomplete_while_running_and_written_at_the_end
     code, _, _ = call(st, "POST", "/api/label", {"xyz": [0, 0, 0], "text": "late"}, token=st.token)
     assert code == 409                                          # the loop has ended
     written = st.close()
-    assert set(written) == {"trajectory.tum", "events.csv", "labels.toml", "station.json"}
+    assert set(written) == {"trajectory.tum", "events.csv", "labels.toml", "station.json", "session.mcap"}
     doc = json.loads((tmp_path / "station.json").read_text())
     assert doc["complete"] is True and doc["frames"] == 40
     rows = (tmp_path / "events.csv").read_text().splitlines()

@@ -146,6 +146,8 @@ class LiveStation:
         self.pace = pace
         self.on_finish = on_finish
         self.finish_result = None
+        #: A session.mcap sink (runtime.apps.session_log.LoopRecorder), set by the station; fed after each period.
+        self.recorder = None
         self.run = StationRun()
         self.loop: ClosedLoop | None = None
         self._actions: queue.Queue[Pending] = queue.Queue()
@@ -223,6 +225,8 @@ class LiveStation:
                 if self._estop:
                     cmd = JointCommand(self._q_stop, np.zeros(3), basis_t=None)
                 self._after_step(obs, cmd, truth)
+                if self.recorder is not None:
+                    self.recorder.period(loop, obs, cmd, self.run.events)
                 # Answered once the period they changed is published: a client that reads the
                 # state after its answer sees the change.
                 for p, res in answered:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from ...gaze import ControllerSettings
 from . import record
+from ..session_log import SESSION_FILE, LoopRecorder
 from .live import LiveStation
 from .server import StationServer, wearer_token_for
 from .view3d import View3D
@@ -94,6 +95,8 @@ class Station:
         self.notes = dict(notes or {})
         self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace,
                                 on_finish=on_finish)
+        if self.out is not None:
+            self.live.recorder = LoopRecorder(self.out / SESSION_FILE)
         self._port = port
         self._view_rate = view_rate_hz
         self.view: View3D | None = None
@@ -195,10 +198,13 @@ class Station:
         if self.http is not None:
             self.http.close()
         if self.out is not None and self.live.started.is_set():
-            self.written = record.finish(self.out, self.live.run, self.notes)
+            mcap = self.live.recorder.close(self.live.run.ended or "stopped")   # before station.json says complete
+            self.written = record.finish(self.out, self.live.run, self.notes) + ([SESSION_FILE] if mcap else [])
         elif self._begun:                  # it never ran: say so, never "running"
             record.failed(self.out, self.live.run.ended or "failed to start", self.notes)
             self._begun = False
+        if self.live.recorder is not None and not self.live.started.is_set():
+            self.live.recorder.discard()   # it never ran: no session log
         if self._folder is not None:
             self._folder.close(complete=self.live.started.is_set())
         return self.written
