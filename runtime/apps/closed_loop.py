@@ -42,7 +42,7 @@ from kinematics.tomlfile import read_toml
 from ..gaze import ControllerSettings, GazeController, GazeRefused
 from ..gaze.modes import Stabilise
 from .recentre import Recentring
-from .session_log import SESSION_FILE, LoopRecorder
+from ..session_log import SESSION_FILE, LoopRecorder
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig

@@ -237,7 +237,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     ``video``) into ``out``; ``save_map`` : also save the final map there (map_io.py);
     ``map_path`` : start from a saved map instead of the target (re-localise in its frame);
     ``session_log`` : also session.mcap (images, poses, covariance, map; runtime.apps.session_log)."""
-    from ..apps.session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance
+    from ..session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance
     from . import map_io
 
     if max_frames is not None and max_frames < 1:

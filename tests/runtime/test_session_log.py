@@ -17,7 +17,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from runtime.apps.closed_loop import Task
-from runtime.apps.session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance, stamp_ns
+from runtime.session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance, stamp_ns
 from runtime.sequence import open_sequence
 from runtime.slam.run import run_slam
 from runtime.twin.recorder import record

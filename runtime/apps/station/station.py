@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ...gaze import ControllerSettings
 from . import record
-from ..session_log import SESSION_FILE, LoopRecorder
+from ...session_log import SESSION_FILE, LoopRecorder
 from .live import LiveStation
 from .server import StationServer, wearer_token_for
 from .view3d import View3D
