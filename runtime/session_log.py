@@ -53,7 +53,7 @@ from mcap_protobuf.schema import register_schema
 
 from kinematics import JOINT_NAMES
 
-from ..slam.quaternion import quat_from_rotation
+from .slam.quaternion import quat_from_rotation
 
 #: The file's name in a run's folder.
 SESSION_FILE = "session.mcap"

@@ -445,7 +445,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     stops, before anything is scored or written (a rig's safe stop: the head is not left holding
     while the plots are drawn). ``label`` : what the report calls the robot's setting
     (the scenario); ``task_info`` : extra keys for task.toml. ``session_log`` : also session.mcap
-    (images, IMU, joints, SLAM's pose and map, target, prompts, events; runtime.apps.session_log).
+    (images, IMU, joints, SLAM's pose and map, target, prompts, events; runtime.session_log).
     """
     from .evaluate import evaluate
     from .report import write_outputs

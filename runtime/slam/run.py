@@ -236,7 +236,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     """Run over a sequence and write trajectory.tum, map.csv, stats.json (and video/ with
     ``video``) into ``out``; ``save_map`` : also save the final map there (map_io.py);
     ``map_path`` : start from a saved map instead of the target (re-localise in its frame);
-    ``session_log`` : also session.mcap (images, poses, covariance, map; runtime.apps.session_log)."""
+    ``session_log`` : also session.mcap (images, poses, covariance, map; runtime.session_log)."""
     from ..session_log import MAP_EVERY, SESSION_FILE, SessionLog, pose_covariance
     from . import map_io
 

@@ -146,7 +146,7 @@ class LiveStation:
         self.pace = pace
         self.on_finish = on_finish
         self.finish_result = None
-        #: A session.mcap sink (runtime.apps.session_log.LoopRecorder), set by the station; fed after each period.
+        #: A session.mcap sink (runtime.session_log.LoopRecorder), set by the station; fed after each period.
         self.recorder = None
         self.run = StationRun()
         self.loop: ClosedLoop | None = None
