@@ -38,7 +38,7 @@ class DemoResult:
 
 
 def demo_sweep():
-    """The default sweep cut down to a demo budget: 28 reference directions, 6 generations."""
+    """The default sweep cut down to a demo budget: 168 evaluations (6 generations of 28)."""
     from dataclasses import replace
 
     from design.sweep_file import load_sweep
@@ -48,8 +48,12 @@ def demo_sweep():
                    workload=replace(spec.workload, saccade_amplitudes_deg=(10.0, 40.0), walk_seconds=1.0))
 
 
+#: How the report names the sweeps' searches (design.sweep_file.ALGORITHMS).
+ALGORITHM_NAMES = {"agemoea2": "AGE-MOEA2", "nsga3": "NSGA-III", "random": "Random variation"}
+
+
 def stage_design(out: Path, context: dict) -> str:
-    """A small NSGA-III sweep of the head's layout; its chosen head flows to every later stage."""
+    """A small sweep of the head's layout (the default search); its chosen head flows to every later stage."""
     from design.study import optimise
     from kinematics import load_head
 
@@ -61,8 +65,9 @@ def stage_design(out: Path, context: dict) -> str:
     context["head"] = load_head(c.head_path)
     rows = "\n".join(f"| `{k}` | {v:.4g} | {c.reference_criteria[k]:.4g} |" for k, v in c.criteria.items())
     return "\n".join([
-        f"NSGA-III over the positions of camera and motors, {o.evaluations} evaluations: {o.feasible} feasible, "
-        f"front of {o.front_size}, hypervolume {c.hypervolume:.3f} (normalised, Monte Carlo). "
+        f"{ALGORITHM_NAMES.get(o.algorithm, o.algorithm)} over the positions of camera and motors, {o.evaluations} "
+        f"evaluations: {o.feasible} feasible, front of {o.front_size}, hypervolume {c.hypervolume:.3f} (normalised, "
+        f"{'exact' if c.hypervolume_exact else 'moocore approximation'}). "
         f"{c.decision.capitalize()}.",
         f"Files: [report.md]({rel}/report.md), [front.csv]({rel}/front.csv), [evaluations.csv]({rel}/evaluations.csv), "
         f"[chosen_head.toml]({rel}/chosen_head.toml).", "",
