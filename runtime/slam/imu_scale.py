@@ -162,9 +162,8 @@ def estimate_scale(t: np.ndarray, p: np.ndarray, R: np.ndarray, t_imu: np.ndarra
     dof = max(len(r) - 6, 1)
     cov = np.linalg.pinv(J.T @ J) * float(r @ r) / dof
     s = 1.0 / k
-    A = np.column_stack([lam, beta])
     # The camera's own acceleration (metric), RMS: lam is its second difference in map units.
-    lam_norm = np.linalg.norm(A[:, 0].reshape(-1, 3), axis=1) / np.array(half)
+    lam_norm = np.linalg.norm(lam.reshape(-1, 3), axis=1) / np.array(half)
     excitation = float(abs(s) * np.sqrt(np.mean(lam_norm**2)))
     return ScaleEstimate(s, g, float(np.sqrt(max(cov[0, 0], 0.0)) / abs(k)), len(tk) - 2, excitation, b_a)
 

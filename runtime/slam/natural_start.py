@@ -106,7 +106,7 @@ def _corners(cam: CameraIntrinsics, grey: np.ndarray, s: StartSettings, mask: np
     return np.empty((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
 
 
-def _ray_covariance(rays: np.ndarray, depth: np.ndarray, sigma_along: np.ndarray, sigma_across: np.ndarray) -> np.ndarray:
+def _ray_covariance(rays: np.ndarray, sigma_along: np.ndarray, sigma_across: np.ndarray) -> np.ndarray:
     """(n, 3, 3) covariances with standard deviation ``sigma_along`` along each unit ray (n, 3) and
     ``sigma_across`` across it (m)."""
     P_along = rays[:, :, None] * rays[:, None, :]
@@ -143,7 +143,7 @@ def depth_start(cam: CameraIntrinsics, grey: np.ndarray, depth_m: np.ndarray, fr
     # Depth noise along the ray (z-noise scaled to range), the pixel's noise across it.
     sigma_along = DEPTH_NOISE_K * z**2 * rng / z
     sigma_across = rng * s.pixel_sigma / cam.fx
-    return NaturalStart(frame, uv, xyz, _ray_covariance(rays, rng, sigma_along, sigma_across), "depth")
+    return NaturalStart(frame, uv, xyz, _ray_covariance(rays, sigma_along, sigma_across), "depth")
 
 
 def triangulate(R_b_a: np.ndarray, t_b_a: np.ndarray, xy_a: np.ndarray, xy_b: np.ndarray) -> np.ndarray:
@@ -279,7 +279,7 @@ class TwoViewStart:
         # sigma_theta the pixel noise's angle seen from either view.
         sigma_theta = self.s.pixel_sigma / self.cam.fx
         sigma_along = rng * np.sqrt(2.0) * sigma_theta / np.sin(np.radians(geo.parallax_deg))
-        cov = _ray_covariance(rays, rng, sigma_along, rng * sigma_theta)
+        cov = _ray_covariance(rays, sigma_along, rng * sigma_theta)
         dt = max(t - self._t_ref, 1e-6)
         return NaturalStart(self.ref_frame, self._ref_uv[geo.keep], X, cov, "arbitrary", v_world=c_b / dt)
 
