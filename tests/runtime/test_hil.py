@@ -116,7 +116,8 @@ def _serve(tmp_path, seconds, wait_s=5.0, linger_s=6.0):
 def test_unplugging_the_board_mid_run_is_one_line_and_keeps_the_session(tmp_path):
     import time
 
-    twin, hil, th = _serve(tmp_path, seconds=1.2, wait_s=1.0, linger_s=0.0)
+    # wait_s as in the Ctrl-C test: a slow period on a loaded machine is not taken for a stop.
+    twin, hil, th = _serve(tmp_path, seconds=1.2, wait_s=5.0, linger_s=0.0)
 
     def unplug():
         deadline = time.monotonic() + 300
@@ -139,7 +140,7 @@ def test_unplugging_the_board_mid_run_is_one_line_and_keeps_the_session(tmp_path
     session = json.loads((tmp_path / "run" / "session.json").read_text())
     assert session["complete"] is False and "fault" in session["status"]
     seq = open_sequence(tmp_path / "run")                  # what was recorded before the fault is intact
-    assert 8 <= len(seq) <= 14 and seq.imu is not None
+    assert 8 <= len(seq) <= 20 and seq.imu is not None
     assert (tmp_path / "run" / "joints.csv").exists()
 
 
