@@ -170,28 +170,39 @@ class Brown(_IterativeLens):
 
     def solve(self, cam, xd):
         p = lens_kernel_args(cam)[1]
-        x = xd.copy()
-        active = np.isfinite(xd).all(axis=1)
-        converged = np.zeros(len(xd), bool)
-        for _ in range(UNDISTORT_MAX_ITER):
-            idx = np.flatnonzero(active)
-            if idx.size == 0:
+        return _brown_solve_many(p, np.ascontiguousarray(xd, float), UNDISTORT_MAX_ITER, UNDISTORT_TOL)
+
+
+@_jit
+def _brown_solve_many(p, xd, max_iter, tol):
+    """Brown.solve's Newton iteration, a point at a time (N, 2): NaN where it diverged, did not
+    converge in ``max_iter`` steps or landed past the fold."""
+    n = xd.shape[0]
+    out = np.full((n, 2), np.nan)
+    for i in range(n):
+        x, y = xd[i, 0], xd[i, 1]
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        converged = False
+        for _ in range(max_iter):
+            d0, d1, j00, j01, j10, j11 = _brown_point(p, x, y)
+            r0, r1 = d0 - xd[i, 0], d1 - xd[i, 1]
+            det = j00 * j11 - j01 * j10
+            s0 = (j11 * r0 - j01 * r1) / det
+            s1 = (j00 * r1 - j10 * r0) / det
+            x -= s0
+            y -= s1
+            size = max(abs(s0), abs(s1))
+            if size <= tol:
+                converged = True
                 break
-            d, J = _brown_many(p, x[idx])
-            res = d - xd[idx]
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            step = np.stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
-                             J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], axis=1) / det[:, None]
-            x[idx] -= step
-            size = np.abs(step).max(axis=1)
-            done = size <= UNDISTORT_TOL
-            converged[idx[done]] = True
-            active[idx[done | ~np.isfinite(size)]] = False  # finished, or diverged (singular J)
+            if not np.isfinite(size):
+                break
         # Past the fold the radial factor can turn negative, mapping points through the centre to
         # the opposite side (with det J > 0 again, so the fold check alone would not catch it).
-        r2 = np.sum(x * x, axis=1)
-        converged &= _brown_radial(p, r2) > 0
-        return np.where(converged[:, None], x, np.nan)
+        if converged and _brown_radial(p, x * x + y * y) > 0:
+            out[i, 0], out[i, 1] = x, y
+    return out
 
 
 # -- fisheye -----------------------------------------------------------------------------------
