@@ -6,7 +6,8 @@ sequence has (no target: a natural start) and every frame's pose is scored again
 truth after a Sim(3) alignment (evo's Umeyama). Reported per sequence: the ATE RMSE (and without
 alignment where the scale is metric), frames lost, frames before the start, the scale source and
 the factor Sim(3) finds (1 for an exact metric scale), ms per frame (median, p99, max; one core,
-decoding excluded), beside the published figures of ORB-SLAM, PTAM and LSD-SLAM where they exist
+decoding excluded; wall clock, and the tracking thread's CPU time, which a loaded machine inflates
+less), beside the published figures of ORB-SLAM, PTAM and LSD-SLAM where they exist
 (keyframe trajectories, from Mur-Artal et al., ORB-SLAM, T-RO 2015, table III; their "X": lost).
 
 The data stay outside the repository (benchmarks/datasets.md says how to fetch them):
@@ -59,7 +60,9 @@ def run(folder: Path, max_frames: int | None = None) -> dict:
         stats = json.loads((out / "stats.json").read_text())
         est = read_trajectory(out / "trajectory.tum")
     e = trajectory_errors(est, seq.groundtruth) if seq.groundtruth is not None and len(est.t) > 1 else None
-    ms = np.array([1000 * f["seconds"] for f in stats["frames"][1:] if not f["skipped"] and f["seconds"] > 0])
+    timed = [f for f in stats["frames"][1:] if not f["skipped"] and f["seconds"] > 0]
+    ms = np.array([1000 * f["seconds"] for f in timed])
+    cpu = np.array([1000 * f.get("cpu_seconds", np.nan) for f in timed])
     return {"name": Path(seq.root).name if Path(seq.root).name != "mav0" else Path(seq.root).parent.name,
             "frames": r.frames, "before_start": r.frames_before_start, "lost": r.lost_frames, "scale": r.scale,
             "ate_sim3_cm": 100 * e.ate_sim3_rmse_m if e else float("nan"),
@@ -67,7 +70,9 @@ def run(folder: Path, max_frames: int | None = None) -> dict:
             "sim3_scale": e.sim3_scale if e else float("nan"),
             "ms_median": float(np.median(ms)) if len(ms) else float("nan"),
             "ms_p99": float(np.percentile(ms, 99)) if len(ms) else float("nan"),
-            "ms_max": float(ms.max()) if len(ms) else float("nan")}
+            "ms_max": float(ms.max()) if len(ms) else float("nan"),
+            "cpu_ms": tuple(float(v) for v in (np.median(cpu), np.percentile(cpu, 99), cpu.max())) if len(cpu) else
+            (float("nan"),) * 3}
 
 
 def main() -> int:
@@ -85,8 +90,8 @@ def main() -> int:
               "(benchmarks/datasets.md)")
         return 0
     print("| sequence | frames (before start) | lost | scale (Sim3 factor) | ATE Sim3 cm | ATE none cm | "
-          "ms median / p99 / max | ORB-SLAM / PTAM / LSD-SLAM cm |")
-    print("|---|---|---|---|---|---|---|---|")
+          "ms median / p99 / max | CPU ms median / p99 / max | ORB-SLAM / PTAM / LSD-SLAM cm |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for folder in folders:
         r = run(folder, a.max_frames)
         pub = PUBLISHED_CM.get(r["name"])
@@ -95,6 +100,7 @@ def main() -> int:
         none = f"{r['ate_none_cm']:.2f}" if r["scale"] != "arbitrary" else "-"
         print(f"| {r['name']} | {r['frames']} ({r['before_start']}) | {r['lost']} | {r['scale']} (x{r['sim3_scale']:.3f}) "
               f"| {r['ate_sim3_cm']:.2f} | {none} | {r['ms_median']:.1f} / {r['ms_p99']:.1f} / {r['ms_max']:.1f} "
+              f"| {r['cpu_ms'][0]:.1f} / {r['cpu_ms'][1]:.1f} / {r['cpu_ms'][2]:.1f} "
               f"| {pub_s} |", flush=True)
     return 0
 

@@ -270,6 +270,9 @@ class MeasureSettings:
     min_distance_px: float = 24.0        # between a new feature and any other, at 640 px width
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
     noise_every: int = 15                # frames between estimates of the image noise (new features' contrast)
+    guide_first: int = 12                # features searched first to guide the rest (guided.py); 0: off
+    guide_area_px: float = 30_000.0      # guide when the chosen features' 3-sigma ellipses cover more, px^2
+    guide_floor_px: float = 1.0          # added in quadrature to a guided ellipse's axes (linearisation), px
 
 
 @dataclass(frozen=True)

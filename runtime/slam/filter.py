@@ -148,6 +148,14 @@ def innovation_covariances(state: State, pred: Prediction, R_pix, r_scale=None) 
     return S
 
 
+def cross_covariance(state: State, pred_a: Prediction, pred_b: Prediction) -> np.ndarray:
+    """``H_a P H_b^T`` (2 m_a, 2 m_b) px^2: the cross-covariance of two sets of predicted
+    measurements (no measurement noise; rows and columns in (u, v) pairs per feature)."""
+    HbP = _h_times_kernel(state.P, state.kinds, state.starts, FEATURE_DIMS, pred_b.ks, pred_b.H_c, pred_b.H_f)
+    return _h_times_kernel(np.ascontiguousarray(HbP.T), state.kinds, state.starts, FEATURE_DIMS, pred_a.ks,
+                           pred_a.H_c, pred_a.H_f)
+
+
 @compiled_kernel()
 def innovation_nis(nu, S):
     """(m,) each innovation's ``nu_i^T S_i^-1 nu_i`` for nu (m, 2) px and S (m, 2, 2) px^2

@@ -13,6 +13,7 @@ from kinematics.camera import CameraIntrinsics
 
 from .config import MapSettings, SlamConfig
 from .filter import FrameUpdate, innovation_covariances, innovation_nis
+from .guided import guided_regions
 from .matching import match_features
 from .measurement import Prediction, predict, predict_uv
 from .motion import f_and_dfdx_dfdn, noise_covariance
@@ -36,6 +37,7 @@ class Measurement:
                  target: RefinedTarget | None):
         self.cam, self.settings, self.sigma_pixel = cam, settings, float(sigma_pixel)
         self.seed, self.target = seed, target
+        self.guided = 0             # features the last search guided (search)
 
     def select(self, m: SlamMap) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
         """The features to measure this frame, their innovation covariances and noise (multiples
@@ -98,10 +100,46 @@ class Measurement:
         pred, S, r_scale, visible, Y = self.select(m)
         feats = [m.features[k] for k in pred.ks]
         warp = np.array([warped(s.warp, f) for f in feats], bool)
-        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, pred.uv, S,
+        first = self._guides(m, pred, S, feats)
+        self.guided = 0
+        if first is None:
+            z, found = self._match(g, m, feats, warp, Y, pred.uv, S)
+            return pred, S, r_scale, visible, feats, z
+        # Guided: the first features' matches narrow the rest's regions (guided.py); the update
+        # is still made from every match against the prior.
+        z = np.full((len(feats), 2), np.nan)
+        z[first], _ = self._match(g, m, [feats[i] for i in first], warp[first], Y[first], pred.uv[first], S[first])
+        rest = np.setdiff1d(np.arange(len(feats)), first)
+        guide = guided_regions(m.state, pred, S, first, z[first], s.ransac, s.measure.guide_floor_px)
+        uv_r, S_r = (guide.uv, guide.S) if guide is not None else (pred.uv[rest], S[rest])
+        self.guided = len(rest) if guide is not None else 0
+        z[rest], _ = self._match(g, m, [feats[i] for i in rest], warp[rest], Y[rest], uv_r, S_r)
+        return pred, S, r_scale, visible, feats, z
+
+    def _match(self, g, m: SlamMap, feats: list, warp: np.ndarray, Y: np.ndarray, uv: np.ndarray,
+               S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``feats``' matches in ``g`` searched in the ellipses (uv, S): z (m, 2) NaN where not
+        found, and found (m,)."""
+        s = self.settings
+        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S,
                                      s.views.match_score, s.views.max_search_area_px)
         z[~found] = np.nan
-        return pred, S, r_scale, visible, feats, z
+        return z, found
+
+    def _guides(self, m: SlamMap, pred: Prediction, S: np.ndarray, feats: list) -> np.ndarray | None:
+        """The features (indices into ``pred``) to search first when the chosen features' search
+        ellipses are large (MeasureSettings.guide_*): the most reliable, spread over the image;
+        None to search all at once."""
+        g = self.settings.measure
+        n = len(pred.ks)
+        if g.guide_first <= 0 or n < g.guide_first + 3:
+            return None
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        area = 9 * math.pi * np.sqrt(np.maximum(det, 0))
+        if not area.sum() > g.guide_area_px:
+            return None
+        priority = np.array([f.reliability for f in feats]) + 1e-6 * np.log(np.maximum(det, 1e-12))
+        return self._spread(pred.uv, priority, [f.known for f in feats], g.guide_first, np.arange(n))
 
     def measure(self, g: np.ndarray, m: SlamMap, st: FrameStats, frame: int, motion_cfg: SlamConfig,
                 retry_dt: float | None = None,
@@ -132,6 +170,7 @@ class Measurement:
                 m.state.restore(before)
             n = len(pred.ks)
         st.predicted = visible
+        st.guided = self.guided
         edged = self.known_by_edges(g, feats, z, pred.uv) if s.startup.known_edges else np.zeros(n, bool)
         for f in feats:
             f.attempts += 1

@@ -98,10 +98,12 @@ class FrameStats:
     initialising: int = 0         # inverse-depth features, or particle rays in flight
     map_size: int = 0
     hypotheses: int = 1
-    seconds: float = 0.0
+    seconds: float = 0.0          # wall-clock time of the frame's processing (decoding excluded)
+    cpu_seconds: float = 0.0      # the tracking thread's CPU time for it (what a loaded machine does not inflate)
     imu: bool = False             # predicted through the IMU
     lost: bool = False
     relocalised: bool = False
+    guided: int = 0               # features searched in regions narrowed by the first ones (guided.py)
     retried: bool = False         # searched again with a larger motion impulse (measure.Measurement.measure)
     onset: bool = False           # measured again with a turn's impulses (track.Track.step)
     sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.adapt_sigma_a)

@@ -337,6 +337,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
                 writer = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
                                          (frame.shape[1], frame.shape[0]))
             writer.write(frame)
+    slam.finish()
     bar.close()
     if writer is not None:
         writer.release()

@@ -332,7 +332,7 @@ class MonoSLAM:
 
     def process(self, image: np.ndarray, t: float, imu=None) -> FrameStats:
         """One frame at time t (s); ``imu`` : optional IMU rows since the last frame."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         if imu is not None:
             self.add_imu(imu)
         self.frame += 1
@@ -352,8 +352,15 @@ class MonoSLAM:
         st = stats[0] if len(self._tracks) == len(stats) else stats[self._winner]
         st.hypotheses = len(self._tracks)
         st.seconds = time.perf_counter() - t0
+        st.cpu_seconds = time.thread_time() - c0
         self.stats.append(st)
         return st
+
+    def finish(self) -> None:
+        """Wait for the checks running beside the tracker (track.Track.covariance), raising a
+        failure they found."""
+        for tr in self._tracks:
+            tr.covariance.wait()
 
     def _decide(self) -> None:
         """With two start-up hypotheses, keep the one the map's measurements favour once the

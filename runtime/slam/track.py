@@ -11,6 +11,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics
 
 from .config import MapSettings, SlamConfig
+from .covariance_watch import CovarianceWatch
 from .filter import FrameUpdate
 from .impulses import ImpulseAdapter
 from .inertial import predict_imu
@@ -48,6 +49,7 @@ class Track:
         self.low_matches = 0 if localised else settings.relocalisation.lost_after
         self.status = TrackingStatus.TRACKING if localised else TrackingStatus.INITIALISING
         self.score = 0.0
+        self.covariance = CovarianceWatch()     # the full PSD check, beside the tracker
 
     # -- the map's pieces, as the facade and its callers name them --
     @property
@@ -136,7 +138,8 @@ class Track:
         if not lost:
             self.impulses.adapt(t, self.state)
         if frame % self.cfg.guard.psd_check_every == 0:
-            self.state.check(f"frame {frame}", self.cfg.guard.psd_rel_tol)
+            self.covariance.submit(self.state, f"frame {frame}", self.cfg.guard.psd_rel_tol)
+        self.covariance.raise_if_failed()
         self.low_matches = self.low_matches + 1 if st.matched < 3 else 0
         self.status = (TrackingStatus.RELOCALISED if lost else TrackingStatus.LOST if self.lost
                        else TrackingStatus.RECENTLY_LOST if self.low_matches else TrackingStatus.TRACKING)
