@@ -54,6 +54,11 @@ COARSE_PEAKS = 3
 #: search's global one is nearer the truth; searched exhaustively.
 COARSE_LEVEL = 0.2
 COARSE_LEVEL_MOST = 8
+#: A level valley in a region larger than this (its bounding box, px) is not searched
+#: exhaustively: the descents start from its COARSE_LEVEL_MOST least coarse minima instead, so
+#: a young feature's long epipolar ellipse (tens of thousands of pixels) costs a coarse scan
+#: and a few descents, not a full correlation at every pixel.
+VALLEY_EXHAUSTIVE_MAX_PX = 6000
 
 
 @compiled_kernel()
@@ -229,7 +234,8 @@ def _window_sums(grey, T, y, x):
 
 @compiled_kernel(_zero_mean_into, _region_integrals, _score, _score_from_sums, _window_sums, _zncc_in_ellipse,
                  fastmath={"contract", "reassoc"})
-def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2, peaks, level, most):
+def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2, peaks, level, most,
+                         exhaustive_max):
     """The scores of ``_zncc_in_ellipse`` at the positions a coarse-to-fine search visits, inf
     elsewhere. Coarse: the region and the template averaged over 2 x 2 blocks (one pyramid
     level), scored at every second pixel of every second row of the ellipse grown by a pixel's
@@ -306,9 +312,12 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
             if iaa * du * du + 2.0 * iab * du * dv + ibb * dv * dv > nd2:
                 continue
             coarse[k, m] = _score_from_sums(corr[m], tcn2, ii, ii2, m, k, tc)
-    # A level valley (an edge, a repeated pattern): the exhaustive search.
+    # A level valley (an edge, a repeated pattern): the exhaustive search, or in a large region
+    # descents from more of its minima.
     if (coarse <= coarse.min() + level).sum() > most:
-        return _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2)
+        if nu * nv <= exhaustive_max:
+            return _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2)
+        peaks = most
     # The coarse grid's least local minima (over its 8 neighbours).
     best_s = np.full(peaks, np.inf)
     best_i = np.zeros(peaks, np.int64)
@@ -563,7 +572,7 @@ def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
     det = a * c - b * b
     if tpl.shape[0] >= COARSE_MIN_TEMPLATE:
         grid = _zncc_coarse_to_fine(grey, tpl, u0, v0, u1 - u0 + 1, v1 - v0 + 1, uv[0], uv[1], c / det, -b / det,
-                                    a / det, n2, COARSE_PEAKS, COARSE_LEVEL, COARSE_LEVEL_MOST)
+                                    a / det, n2, COARSE_PEAKS, COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX)
     else:
         grid = _zncc_in_ellipse(grey, tpl, u0, v0, u1 - u0 + 1, v1 - v0 + 1, uv[0], uv[1], c / det, -b / det,
                                 a / det, n2)

@@ -108,7 +108,7 @@ def test_the_coarse_to_fine_search_scores_the_exhaustive_best_the_same_from_a_fr
         nu, nv = int(np.ceil(uv[0] + hu)) - u0 + 1, int(np.ceil(uv[1] + hv)) - v0 + 1
         args = (img, tpl, u0, v0, nu, nv, uv[0], uv[1], Si[0, 0], Si[0, 1], Si[1, 1], 9.0)
         full = _zncc_in_ellipse(*args)
-        fast = _zncc_coarse_to_fine(*args, 3, 0.0, 10**6)           # never exhaustive
+        fast = _zncc_coarse_to_fine(*args, 3, 0.0, 10**6, 0)        # never exhaustive
         assert _best_in_grid(full) == _best_in_grid(fast), case
         i, j, score = _best_in_grid(full)
         assert score < 1e-4 and np.hypot(u0 + i - at[0, 0], v0 + j - at[0, 1]) < 0.5, case   # the copy
@@ -121,8 +121,9 @@ def test_the_coarse_to_fine_search_scores_the_exhaustive_best_the_same_from_a_fr
 def test_a_level_valley_is_searched_exhaustively():
     """An edge's template in an image of the edge with noise: its scores along the edge are level
     (a coarse-to-fine descent would stop at a local best), so the search is the exhaustive
-    one, every score of the ellipse; a distinct feature's is not."""
-    from runtime.slam.matching import COARSE_LEVEL, COARSE_LEVEL_MOST, _zncc_coarse_to_fine, _zncc_in_ellipse
+    one, every score of the ellipse, unless the region is large; a distinct feature's is not."""
+    from runtime.slam.matching import (COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX, _best_in_grid,
+                                       _zncc_coarse_to_fine, _zncc_in_ellipse)
 
     rng = np.random.default_rng(3)
     img = np.where(np.arange(320)[None, :] < 161, 60.0, 190.0) * np.ones((240, 1))
@@ -131,12 +132,22 @@ def test_a_level_valley_is_searched_exhaustively():
     Si = np.linalg.inv(np.diag([30.0, 30.0]))
     args = (img, tpl, 140, 100, 41, 41, 160.0, 120.0, Si[0, 0], Si[0, 1], Si[1, 1], 9.0)
     full = _zncc_in_ellipse(*args)
-    edge = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST)
+    edge = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX)
     np.testing.assert_array_equal(edge, full)
+    # In a region too large to search exhaustively (a young feature's long ellipse), the
+    # descents from the valley's minima still land on the edge, for a fraction of the scores.
+    Si_big = np.linalg.inv(np.diag([900.0, 900.0]))
+    big = (img, tpl, 70, 30, 181, 181, 160.0, 120.0, Si_big[0, 0], Si_big[0, 1], Si_big[1, 1], 9.0)
+    assert 181 * 181 > VALLEY_EXHAUSTIVE_MAX_PX
+    wide = _zncc_coarse_to_fine(*big, 3, COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX)
+    wide_full = _zncc_in_ellipse(*big)
+    i, j, score = _best_in_grid(wide)
+    assert abs(70 + i - 161.5) < 1.5 and score < _best_in_grid(wide_full)[2] + COARSE_LEVEL
+    assert np.isfinite(wide).sum() < 0.2 * np.isfinite(wide_full).sum()
     distinct = np.round(textured(5, (240, 320)))
     tpl = distinct[113:128, 153:168].copy()
     args = (distinct, tpl) + args[2:]
-    fast = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST)
+    fast = _zncc_coarse_to_fine(*args, 3, COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX)
     assert np.isfinite(fast).sum() < 0.2 * np.isfinite(_zncc_in_ellipse(*args)).sum()
 
 
