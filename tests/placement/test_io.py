@@ -507,6 +507,11 @@ def test_bvh_bad_files_name_the_line(tmp_path, body):
             f"line {k + 1}", "'Wrotation'")
     refused("\n".join(lines[:k - 4]) + "\n", "no MOTION")
     refused("\n".join(lines[:k - 4] + ["MOTION", "Frames: 1", "Frame Time: 0.1", "0"]), "ends", "HIERARCHY")
+    for missing, words in ((tmp_path / "missing.bvh", ("missing.bvh", "no such file", "BVH")),
+                           (tmp_path, ("is a folder", "BVH"))):
+        with pytest.raises(BodyError) as e:
+            load_bvh(missing, body)
+        assert "Errno" not in _one_line_error(e, *words)
 
 
 # ----------------------------------------------------------------------------------------------
