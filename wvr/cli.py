@@ -549,6 +549,9 @@ def cmd_eval(args) -> int:
         from runtime.eval import map_errors
 
         m = map_errors(seq, result / "map.csv")
+        if m.skipped:
+            print(f"warning: {len(m.skipped)} depth images skipped, their features left out of the map figures "
+                  f"(the first: {m.skipped[0]})", file=sys.stderr)
         if len(m.errors_m):
             print(f"map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
                   f"median {100 * m.median_m:.2f} cm")
