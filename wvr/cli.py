@@ -590,6 +590,17 @@ def _degrees3(text: str) -> np.ndarray:
     return v
 
 
+def _distinct(value: float, *limits: float) -> list[str]:
+    """value (as typed) and limits printed with the fewest decimals (at least one) that tell
+    the value from every limit: 80.0001 beyond 80.0, not 80.0 beyond 80.0."""
+    for digits in range(1, 17):
+        text = [f"{x:.{digits}f}" for x in (value, *limits)]
+        if text[0] not in text[1:]:
+            break
+    trim = [t.rstrip("0") + "0" if t.rstrip("0").endswith(".") else t.rstrip("0") for t in text]
+    return [repr(float(value))] + trim[1:]          # the value as typed (repr round-trips the text's float)
+
+
 def cmd_head(args) -> int:
     """Bring-up moves at a slow, stated rate; nothing beyond the head's range is ever sent."""
     import math
@@ -620,12 +631,15 @@ def cmd_head(args) -> int:
     if args.action == "goto":
         if args.angles is None:
             raise ValueError("goto needs the angles: wvr head --rig rig.toml goto E,P,C (degrees)")
-        goal = np.radians(_degrees3(args.angles))
+        goal_deg = _degrees3(args.angles)
+        goal = np.radians(goal_deg)
         bad = (goal < head.lower - 1e-12) | (goal > head.upper + 1e-12)
         if bad.any():
             j = int(np.argmax(bad))
-            raise ValueError(f"{JOINT_NAMES[j]} {math.degrees(goal[j]):.1f} deg is beyond the head's range "
-                             f"{math.degrees(head.lower[j]):.1f}..{math.degrees(head.upper[j]):.1f} deg; nothing was sent")
+            lo, hi = math.degrees(head.lower[j]), math.degrees(head.upper[j])
+            v, lo_s, hi_s = _distinct(goal_deg[j], lo, hi)
+            raise ValueError(f"{JOINT_NAMES[j]} {v} deg is beyond the head's range {lo_s}..{hi_s} deg; nothing "
+                             f"was sent")
         poses = [goal]
     elif args.action == "home":
         poses = [cfg.home]
