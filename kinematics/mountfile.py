@@ -34,6 +34,11 @@ from .tomlfile import brief, read_toml
 
 #: Unit vectors in the file are normalised if within this of length 1, else refused.
 UNIT_TOL = 1e-3
+#: A person's stature, m (placement.body.make_body's range): a mount was placed on a body this tall.
+STATURE_RANGE_M = (0.5, 2.5)
+#: How far a place on the body may lie from its segment's joint centre, m (a 2.5 m person's
+#: longest segment is about 0.6 m, plus a stand-off).
+MAX_POSITION_M = 1.5
 
 
 class MountFileError(ValueError):
@@ -70,6 +75,15 @@ class MountFile:
             v = getattr(self, name)
             if v is not None and not (_real(v) and math.isfinite(v) and v >= 0):
                 raise MountFileError(f"[mount].{name} = {brief(v)} must be a finite number >= 0, metres")
+        lo, hi = STATURE_RANGE_M
+        if self.stature_m is not None and not lo <= self.stature_m <= hi:
+            raise MountFileError(f"[mount].stature_m = {self.stature_m:g} is not a person's stature; give metres, "
+                                 f"{lo:g} to {hi:g} (e.g. 1.75), or leave it out")
+        far = float(np.linalg.norm(self.position_m))
+        if far > MAX_POSITION_M:
+            raise MountFileError(f"[mount].position_m = {self.position_m.tolist()} is {far:.3g} m from the "
+                                 f"{self.segment} segment's joint; a place on the body is within {MAX_POSITION_M:g} m "
+                                 f"of it (metres, in the segment's frame)")
 
 
 def _real(v) -> bool:

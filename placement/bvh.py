@@ -146,7 +146,11 @@ def read_bvh(path) -> BvhData:
     """Parse a BVH file (HIERARCHY and MOTION) without interpreting it; errors name the line."""
     path = Path(path)
     name = path.name
-    lines = path.read_text(errors="replace").splitlines()
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError as e:
+        what = "is a folder" if path.is_dir() else "no such file" if not path.exists() else f"cannot be read ({e.strerror or e})"
+        raise BodyError(f"{path}: {what}; give a BVH motion file (HIERARCHY then MOTION)") from None
     motion_line = next((i for i, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
     if motion_line is None:
         raise BodyError(f"{name}: no MOTION section; expected a BVH file with HIERARCHY then MOTION")

@@ -67,6 +67,7 @@ def load_body(mesh_path, joints_path) -> Body:
     else:
         raise BodyError(f"{mesh_path.name}: unknown mesh format {suffix!r}; expected a segment-labelled .obj or .ply")
     joints = load_joints_json(joints_path)
+    _check_vertices(mesh_path.name, vertices)
 
     # Orientation first: Body.check() tests the height before the orientation, which would
     # report a body lying down as "0.3 m tall"; the longest extent says what is really wrong.
@@ -85,6 +86,26 @@ def load_body(mesh_path, joints_path) -> Body:
                         f"{np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()}; expected the joints in the "
                         "mesh's units (metres) and frame")
     return Body(vertices=vertices, faces=faces, face_segment=face_segment, joints=joints).check()
+
+
+#: A vertex this many times farther from the mesh's median than the 99th percentile vertex is
+#: not on the body (a stray point at 1e30 would otherwise pass for a body lying down).
+STRAY_FACTOR = 10.0
+
+
+def _check_vertices(name: str, vertices: np.ndarray) -> None:
+    """Refuse non-finite vertices (V, 3) and stray ones far off the body, naming the first."""
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:
+        raise BodyError(f"{name}: {bad.size} vertices are not finite numbers (the first is "
+                        f"{vertices[bad[0]].tolist()}); expected x, y, z in metres for every vertex")
+    d = np.linalg.norm(vertices - np.median(vertices, axis=0), axis=1)
+    reach = float(np.percentile(d, 99))
+    stray = np.flatnonzero(d > STRAY_FACTOR * reach + 1e-9)
+    if stray.size:
+        raise BodyError(f"{name}: {stray.size} vertices lie far off the body (the first at "
+                        f"{np.array2string(vertices[stray[0]], precision=4)}, {d[stray[0]]:.3g} m from its middle, "
+                        f"where 99% lie within {reach:.3g} m); remove them, or give every vertex in metres")
 
 
 def load_joints_json(path) -> np.ndarray:

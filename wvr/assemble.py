@@ -95,11 +95,12 @@ def clicked_target(twin, error_px: float = CLICK_ERROR_PX, seed: int = 0):
 
 
 def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: int = 0, settings=None,
-                progress: bool = True, on_period=None, start_target=None, click_error_px: float = CLICK_ERROR_PX) -> dict:
+                progress: bool = True, on_period=None, start_target=None, click_error_px: float = CLICK_ERROR_PX,
+                session_log: bool = True) -> dict:
     """The closed loop on the twin for a scenario: the twin, behind the safety chain
     (:func:`safe_twin`), as the Robot and the twin as the TruthSource for scoring, started from a simulated person's clicks on its first image, ``click_error_px``
-    off (or from ``start_target``). Writes the files of ``wvr sim run`` into ``out``; returns
-    the summary."""
+    off (or from ``start_target``). Writes the files of ``wvr sim run`` into ``out`` (session.mcap
+    too unless ``session_log`` is False); returns the summary."""
     from runtime.apps.closed_loop import run_closed_loop
     from runtime.gaze import ControllerSettings
     from runtime.twin.scenarios import get_scenario
@@ -114,7 +115,7 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
     settings = settings or ControllerSettings()
     s = run_closed_loop(safe_twin(twin, settings.motion_limit_rad_s), task, out, start_target=start, seconds=secs,
                         settings=settings, progress=progress, truth=twin, label=sc.name,
-                        task_info={"scenario": sc.name, "seed": seed}, on_period=on_period)
+                        task_info={"scenario": sc.name, "seed": seed}, on_period=on_period, session_log=session_log)
     from kinematics import save_head
 
     save_head(twin.head, Path(out) / "head.toml")

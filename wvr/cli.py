@@ -396,7 +396,8 @@ def cmd_sim_run(args) -> int:
         try:
             with _seed_hint("--seed"):
                 s = run_on_twin(twin, scenario, task, out, seconds=args.seconds, seed=args.seed, settings=settings,
-                                click_error_px=getattr(args, "click_error", 2.5))
+                                click_error_px=getattr(args, "click_error", 2.5),
+                                session_log=not getattr(args, "no_session_log", False))
         finally:
             twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
@@ -474,7 +475,7 @@ def cmd_slam(args) -> int:
         check_output(Path(args.save_map).parent, "--save-map")
     with output_folder(args.out, kind="slam") as out:    # checked before the run, INCOMPLETE until it ends
         r = run_slam(args.seq, out, max_frames=args.max_frames, video=args.video, cfg=cfg, settings=settings,
-                     save_map=args.save_map, map_path=args.map)
+                     save_map=args.save_map, map_path=args.map, session_log=not args.no_session_log)
     print(f"{r.frames} frames ({r.skipped} skipped), {r.features} features in the map, {r.mean_matched:.1f} of "
           f"{r.mean_searched:.1f} searched matched per frame, {r.median_ms_per_frame:.1f} ms per frame (median)"
           + (f"; located in the map after {r.first_localised_s:.2f} s" if args.map and r.first_localised_s is not None else "")
@@ -549,6 +550,9 @@ def cmd_eval(args) -> int:
         from runtime.eval import map_errors
 
         m = map_errors(seq, result / "map.csv")
+        if m.skipped:
+            print(f"warning: {len(m.skipped)} depth images skipped, their features left out of the map figures "
+                  f"(the first: {m.skipped[0]})", file=sys.stderr)
         if len(m.errors_m):
             print(f"map against the true depth: {len(m.errors_m)} features, RMSE {100 * m.rmse_m:.2f} cm, "
                   f"median {100 * m.median_m:.2f} cm")
@@ -587,6 +591,17 @@ def _degrees3(text: str) -> np.ndarray:
     return v
 
 
+def _distinct(value: float, *limits: float) -> list[str]:
+    """value (as typed) and limits printed with the fewest decimals (at least one) that tell
+    the value from every limit: 80.0001 beyond 80.0, not 80.0 beyond 80.0."""
+    for digits in range(1, 17):
+        text = [f"{x:.{digits}f}" for x in (value, *limits)]
+        if text[0] not in text[1:]:
+            break
+    trim = [t.rstrip("0") + "0" if t.rstrip("0").endswith(".") else t.rstrip("0") for t in text]
+    return [repr(float(value))] + trim[1:]          # the value as typed (repr round-trips the text's float)
+
+
 def cmd_head(args) -> int:
     """Bring-up moves at a slow, stated rate; nothing beyond the head's range is ever sent."""
     import math
@@ -617,12 +632,15 @@ def cmd_head(args) -> int:
     if args.action == "goto":
         if args.angles is None:
             raise ValueError("goto needs the angles: wvr head --rig rig.toml goto E,P,C (degrees)")
-        goal = np.radians(_degrees3(args.angles))
+        goal_deg = _degrees3(args.angles)
+        goal = np.radians(goal_deg)
         bad = (goal < head.lower - 1e-12) | (goal > head.upper + 1e-12)
         if bad.any():
             j = int(np.argmax(bad))
-            raise ValueError(f"{JOINT_NAMES[j]} {math.degrees(goal[j]):.1f} deg is beyond the head's range "
-                             f"{math.degrees(head.lower[j]):.1f}..{math.degrees(head.upper[j]):.1f} deg; nothing was sent")
+            lo, hi = math.degrees(head.lower[j]), math.degrees(head.upper[j])
+            v, lo_s, hi_s = _distinct(goal_deg[j], lo, hi)
+            raise ValueError(f"{JOINT_NAMES[j]} {v} deg is beyond the head's range {lo_s}..{hi_s} deg; nothing "
+                             f"was sent")
         poses = [goal]
     elif args.action == "home":
         poses = [cfg.home]
@@ -712,7 +730,8 @@ def _run_on_rig(args, cfg, out: Path, task, start, settings) -> int:
 
     try:
         s = run_closed_loop(rig, task, out, start_target=start, seconds=args.seconds, settings=settings,
-                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec, on_end=stop_now)
+                            label="rig", task_info={"rig": str(args.rig)}, on_period=rec, on_end=stop_now,
+                            session_log=not args.no_session_log)
         complete = s["ended"] in ("complete",) or s["ended"].endswith("stream ended")
         reason = s["ended"]
     except DriverError as e:
@@ -844,7 +863,8 @@ def cmd_station(args) -> int:
         return out
 
     station = Station(robot, start, host=args.host, port=args.port, token=args.token, out=args.out, truth=truth,
-                      seconds=seconds, settings=settings, notes=notes, on_finish=finish)
+                      seconds=seconds, settings=settings, notes=notes, on_finish=finish,
+                      session_log=not args.no_session_log)
 
     def ready(st):
         for line in st.address_lines():
@@ -885,6 +905,13 @@ def _twin_options(p: argparse.ArgumentParser, scenarios, required: bool = True, 
     p.add_argument("--head", help=f"{when}head.toml (default: the reference head)")
     p.add_argument("--mount", help=f"{when}mount.toml from wvr placement map (default: on the right shoulder)")
     p.add_argument("--camera", help=f"{when}camera.toml (default: 640x480, f = 514.7 px)")
+
+
+def _session_log_option(p: argparse.ArgumentParser, when: str = "") -> None:
+    """--no-session-log: the commands that write session.mcap (runtime.session_log) can leave it out."""
+    p.add_argument("--no-session-log", action="store_true",
+                   help=f"{when}do not write session.mcap (the run's images, poses, map, joints and events for "
+                        "Foxglove or any MCAP reader); the other files are the same")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -1011,6 +1038,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
     run.add_argument("--out", required=True, help="output directory")
+    _session_log_option(run)
     _twin_options(run, SCENARIOS)
     run.set_defaults(func=cmd_sim_run)
 
@@ -1052,6 +1080,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default: rig.toml [start] target)")
     rr.add_argument("--seconds", type=_seconds, help="stop after this long (default: until Ctrl-C or the camera ends)")
     rr.add_argument("--out", required=True, help="output folder (the session's recording and results)")
+    _session_log_option(rr)
     rr.set_defaults(func=cmd_run)
 
     cal = sub.add_parser("calibrate", help="camera intrinsics from board images; IMU still biases into rig.toml")
@@ -1079,6 +1108,7 @@ def build_parser() -> argparse.ArgumentParser:
     trk.add_argument("--servo", action="store_true",
                      help="closed loop in the twin: the gaze controller keeps the target centred")
     _twin_options(trk, SCENARIOS, required=False, when="with --servo: ")
+    _session_log_option(trk, "with --servo: ")
     trk.set_defaults(func=cmd_track)
 
     sl = sub.add_parser("slam", help="single-camera EKF SLAM (MonoSLAM) over a sequence folder")
@@ -1105,6 +1135,7 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")
+    _session_log_option(sl)
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
     ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
@@ -1144,6 +1175,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="controlled-motion limit, deg/s (default %(default)g)")
     stn.add_argument("--click-error", type=float, default=2.5, metavar="PX",
                      help="twin: how far off the simulated person clicks the target's corners (default 2.5)")
+    _session_log_option(stn, "with --out: ")
     stn.set_defaults(func=cmd_station)
 
     demo = sub.add_parser("demo", help="run every stage of the pipeline with small budgets; writes DIR/report.md")

@@ -132,15 +132,30 @@ class Task:
         return self.kind in ("fixate", "saccade")
 
 
+#: How far from the world's origin a target may be, m (a wearable's scene is metres across).
+MAX_TARGET_M = 1000.0
+
+
 def load_targets(path: str | Path) -> tuple[np.ndarray, float | None]:
     """A targets file: TOML with ``targets = [[x, y, z], ...]`` (world, m) and optional ``dwell_s``."""
     d = read_toml(path, ValueError, "a targets TOML file (targets = [[x, y, z], ...])")
     if "targets" not in d:
         raise ValueError(f"{path}: no 'targets' list; write targets = [[x, y, z], ...] in metres, world frame")
-    t = np.asarray(d["targets"], float)
+    try:
+        t = np.asarray(d["targets"], float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: 'targets' must be a list of [x, y, z] triples of numbers (metres, world)") from None
     if t.ndim != 2 or t.shape[1] != 3:
         raise ValueError(f"{path}: 'targets' must be a list of [x, y, z] triples, got shape {t.shape}")
-    return t, d.get("dwell_s")
+    bad = np.flatnonzero(~(np.abs(t) <= MAX_TARGET_M).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: target {bad[0] + 1} {t[bad[0]].tolist()} is not a finite world point within "
+                         f"{MAX_TARGET_M:g} m of the origin; give x, y, z in metres")
+    dwell = d.get("dwell_s")
+    if dwell is not None and not (isinstance(dwell, (int, float)) and not isinstance(dwell, bool)
+                                  and math.isfinite(dwell) and dwell > 0):
+        raise ValueError(f"{path}: dwell_s = {dwell!r} must be a number of seconds above 0")
+    return t, dwell
 
 
 def default_region(target: Target) -> np.ndarray:

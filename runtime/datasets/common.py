@@ -50,7 +50,18 @@ def parse_ns(text: str, where: str) -> int:
                             f"the time in integer nanoseconds") from None
     if not d.is_finite() or d < 0:
         raise SequenceError(f"{where}: timestamp {text.strip()!r} is not a time; give integer nanoseconds")
-    return int(d.to_integral_value())
+    return _in_int64(int(d.to_integral_value()), text, where)
+
+
+#: The largest stamp, ns: what int64 holds (about 292 years).
+MAX_NS = 2**63 - 1
+
+
+def _in_int64(ns: int, text: str, where: str) -> int:
+    if abs(ns) > MAX_NS:
+        raise SequenceError(f"{where}: timestamp {text.strip()!r} is beyond {MAX_NS / NS_PER_S:.3g} s, more than "
+                            f"int64 nanoseconds hold; give the time in seconds (e.g. since the recording began)")
+    return ns
 
 
 def parse_seconds_ns(text: str, where: str) -> int:
@@ -62,7 +73,7 @@ def parse_seconds_ns(text: str, where: str) -> int:
         raise SequenceError(f"{where}: timestamp {text.strip()!r} is not a number; give seconds") from None
     if not d.is_finite():
         raise SequenceError(f"{where}: timestamp {text.strip()!r} is not finite; give seconds")
-    return int((d * NS_PER_S).to_integral_value())
+    return _in_int64(int((d * NS_PER_S).to_integral_value()), text, where)
 
 
 def ns_to_text(ns: int) -> str:

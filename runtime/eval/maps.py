@@ -17,6 +17,8 @@ class MapErrors:
 
     ids: np.ndarray
     errors_m: np.ndarray
+    #: Why each depth image that could not be read was skipped (its features left out).
+    skipped: tuple[str, ...] = ()
 
     @property
     def rmse_m(self) -> float:
@@ -31,7 +33,9 @@ def map_errors(seq, map_csv) -> MapErrors:
     """Each mapped feature of ``map_csv`` (run.py's map.csv) against the sequence's true depth:
     the feature is projected with the ground-truth pose of its first frame, the depth image
     there gives the true surface point on that pixel's ray, and the error is the distance
-    between the two. Features whose pixel falls outside the image or has no depth are left out.
+    between the two. Features whose pixel falls outside the image or has no depth are left out,
+    and so are those of a frame whose depth image is unreadable (not a 16-bit PNG): skipped,
+    with the reason, in :attr:`MapErrors.skipped`.
     ``seq`` : an opened sequence (runtime.sequence.open_sequence) with groundtruth.txt and depth.txt."""
     import csv
 
@@ -40,7 +44,9 @@ def map_errors(seq, map_csv) -> MapErrors:
     if seq.groundtruth is None or seq.depth_paths is None:
         raise ValueError(f"{seq.root}: map errors need groundtruth.txt and depth.txt (record with --depth)")
     T = seq.groundtruth.T_world_cam()
-    ids, errs, cache = [], [], {}
+    from runtime.sequence import SequenceError
+
+    ids, errs, cache, skipped = [], [], {}, []
     with open(map_csv, newline="") as fh:
         for row in csv.DictReader(fh):
             i = int(row["first_frame"])
@@ -54,7 +60,11 @@ def map_errors(seq, map_csv) -> MapErrors:
             if not (0 <= u < seq.camera.width and 0 <= v < seq.camera.height):
                 continue
             if i not in cache:
-                cache[i] = seq.depth(i)
+                try:
+                    cache[i] = seq.depth(i)
+                except SequenceError as e:         # one bad image costs its frame's features, not the figure
+                    cache[i] = None
+                    skipped.append(str(e))
             d = None if cache[i] is None else cache[i][v, u]
             if d is None or not np.isfinite(d):
                 continue
@@ -62,4 +72,4 @@ def map_errors(seq, map_csv) -> MapErrors:
             X = r + R @ (d * ray / ray[2])
             ids.append(int(row["id"]))
             errs.append(float(np.linalg.norm(y - X)))
-    return MapErrors(np.array(ids, dtype=int), np.array(errs))
+    return MapErrors(np.array(ids, dtype=int), np.array(errs), tuple(skipped))

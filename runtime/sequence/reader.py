@@ -4,6 +4,7 @@ and its images one at a time (a bad image is a frame with a problem, never an ex
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -20,6 +21,29 @@ from .types import DEPTH_SCALE, Frame, ImuLog, JointLog, SequenceError, Target, 
 _SEQUENCE_FILES = "see shared/formats.md"
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_fault(data: bytes) -> str | None:
+    """Why a PNG's chunks are damaged (cut short, a CRC that does not match), or None (also for
+    other formats). Checked before decoding: libpng prints its complaints about such a file
+    straight to the process's stderr, around the one-line problem the frame carries."""
+    if not data.startswith(_PNG_SIGNATURE):
+        return None
+    mv, i = memoryview(data), len(_PNG_SIGNATURE)
+    while i + 12 <= len(data):
+        n = int.from_bytes(mv[i:i + 4], "big")
+        end = i + 12 + n
+        if end > len(data):
+            break
+        if zlib.crc32(mv[i + 4:i + 8 + n]) != int.from_bytes(mv[i + 8 + n:end], "big"):
+            return f"its {bytes(mv[i + 4:i + 8]).decode('latin-1')!r} chunk fails its CRC"
+        if mv[i + 4:i + 8] == b"IEND":
+            return None
+        i = end
+    return "truncated"
+
+
 def _load_image(path: Path, width: int, height: int) -> tuple[np.ndarray | None, str | None]:
     """(image, None) or (None, problem). Never raises: one bad frame must not end a run."""
     try:
@@ -30,6 +54,9 @@ def _load_image(path: Path, width: int, height: int) -> tuple[np.ndarray | None,
         return None, f"{path}: cannot read ({e.strerror or e})"
     # imdecode rather than imread: it separates a missing file from a corrupt one, and reads
     # paths OpenCV's own file layer may not (non-ASCII names on some platforms).
+    fault = _png_fault(data)
+    if fault is not None:
+        return None, f"{path}: not a readable image (a damaged PNG: {fault})"
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     except cv2.error:

@@ -197,7 +197,7 @@ def check_region(region, width: int, height: int, min_size: float = 8.0) -> np.n
     if r.shape == (4,):
         x, y, w, h = r
         if not np.all(np.isfinite(r)) or w < min_size or h < min_size:
-            raise ValueError(f"start window {tuple(region)} must have finite x, y and width and height of at "
+            raise ValueError(f"start window {','.join(f'{float(v):g}' for v in r)} must have finite x, y and width and height of at "
                              f"least {min_size:g} px; give --init x,y,w,h around the object")
         quad = np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]])
     elif r.shape == (4, 2):
@@ -212,8 +212,10 @@ def check_region(region, width: int, height: int, min_size: float = 8.0) -> np.n
         raise ValueError(f"start region of shape {r.shape}: give (x, y, w, h) or 4 corners (4, 2)")
     if quad[:, 0].min() < -0.5 or quad[:, 1].min() < -0.5 or quad[:, 0].max() > width - 0.5 or \
             quad[:, 1].max() > height - 0.5:
-        raise ValueError(f"start region {np.round(quad, 1).tolist()} is not inside the {width}x{height} image; "
-                         f"give a window within the first frame")
+        raise ValueError(f"start region {np.round(quad, 1).tolist()} is not inside the {width}x{height} image "
+                         f"(corners within x -0.5..{width - 0.5:g}, y -0.5..{height - 0.5:g} px: pixel centres are "
+                         f"whole numbers); give a window within the first frame, e.g. 0,0,{width - 1},{height - 1} "
+                         f"for all of it")
     return quad
 
 

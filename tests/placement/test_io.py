@@ -196,6 +196,20 @@ def test_wrong_units_and_orientation_are_refused(tmp_path, body, transform, word
     _one_line_error(e, *words)
 
 
+@pytest.mark.parametrize("vertex, words", [
+    ([1e30, 0.0, 0.0], ("far off the body", "1e+30")),
+    ([np.nan, 0.0, 1.0], ("not finite", "nan")),
+])
+def test_a_stray_or_non_finite_vertex_is_named_not_taken_for_a_body_lying_down(tmp_path, body, vertex, words):
+    v = body.vertices.copy()
+    v[0] = vertex
+    mesh, joints = _write_body(tmp_path, Body(vertices=v, faces=body.faces, face_segment=body.face_segment,
+                                              joints=body.joints))
+    with pytest.raises(BodyError) as e:
+        load_body(mesh, joints)
+    assert "lying down" not in _one_line_error(e, "body.obj", *words)
+
+
 def test_joints_json_errors(tmp_path, body):
     import json
 
@@ -493,6 +507,11 @@ def test_bvh_bad_files_name_the_line(tmp_path, body):
             f"line {k + 1}", "'Wrotation'")
     refused("\n".join(lines[:k - 4]) + "\n", "no MOTION")
     refused("\n".join(lines[:k - 4] + ["MOTION", "Frames: 1", "Frame Time: 0.1", "0"]), "ends", "HIERARCHY")
+    for missing, words in ((tmp_path / "missing.bvh", ("missing.bvh", "no such file", "BVH")),
+                           (tmp_path, ("is a folder", "BVH"))):
+        with pytest.raises(BodyError) as e:
+            load_bvh(missing, body)
+        assert "Errno" not in _one_line_error(e, *words)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -70,6 +70,20 @@ def test_sim_run_refuses_a_saccade_without_two_targets(tmp_path, capsys):
     assert "at least two targets" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("text, words", [
+    ("targets = [[0.0, -0.6, nan], [0.1, -0.6, 0.85]]\n", "target 1 [0.0, -0.6, nan] is not a finite world point"),
+    ("targets = [[0.0, -0.6, 1e300], [0.1, -0.6, 0.85]]\n", "target 1 [0.0, -0.6, 1e+300] is not a finite world"),
+    ("targets = [[0.0, -0.6, 0.85], [0.1, -0.6, 0.85]]\ndwell_s = -1.0\n", "dwell_s = -1.0 must be"),
+])
+def test_a_bad_targets_file_is_named_with_its_fault(tmp_path, capsys, text, words):
+    (tmp_path / "targets.toml").write_text(text)
+    code = main(["sim", "run", "--scenario", "workbench-static", "--task", "saccade", "--targets",
+                 str(tmp_path / "targets.toml"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "targets.toml: " in err and words in err, err
+
+
 def test_tracking_servo_keeps_the_tracked_region_centred(twin, tmp_path):
     s = run_on_twin(twin, "workbench-static", Task("track"), tmp_path, seconds=3.0, progress=False)
     with open(tmp_path / "tracking.csv") as fh:

@@ -351,6 +351,16 @@ def test_stamps_out_of_order(tmp_path, capsys):
     _one_line_error(_convert_euroc(tmp_path), capsys, "cam0/data.csv:4", "not after", "increasing time order")
 
 
+def test_a_stamp_beyond_int64_nanoseconds_is_named_not_an_overflow(tmp_path, capsys):
+    (tmp_path / "rgb.txt").write_text("# timestamp filename\n0.0 rgb/0.png\n1e300 rgb/1.png\n")
+    with pytest.raises(SequenceError, match=r"rgb.txt:3: timestamp '1e300' is beyond 9.22e\+09 s"):
+        read_stamps_ns(tmp_path / "rgb.txt")
+    mav0 = make_mav0(tmp_path / "euroc")
+    path = mav0 / "imu0" / "data.csv"
+    path.write_text(path.read_text() + "99999999999999999999,0,0,0,0,0,9.8\n")
+    _one_line_error(_convert_euroc(tmp_path / "euroc"), capsys, "imu0/data.csv", "beyond 9.22e+09 s")
+
+
 def test_imu_stamps_out_of_order(tmp_path, capsys):
     mav0 = make_mav0(tmp_path)
     path = mav0 / "imu0" / "data.csv"

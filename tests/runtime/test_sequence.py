@@ -331,6 +331,21 @@ def test_bad_frames_are_reported_not_raised(tmp_path):
     assert "32x25 but camera.toml says 32x24" in frames[4].problem
 
 
+def test_a_damaged_png_is_a_frame_problem_without_libpngs_chatter(tmp_path, capfd):
+    root = tmp_path / "seq"
+    with SequenceWriter(root, CAM) as w:
+        paths = [w.add_frame(0.1 * i, colour_image(i)) for i in range(3)]
+    data = paths[0].read_bytes()
+    paths[0].write_bytes(data[:40] + bytes(len(data) - 60) + data[-20:])   # zeros over the image data
+    paths[1].write_bytes(data[: len(data) // 2])                           # cut short
+    capfd.readouterr()
+    a, b, c = open_sequence(root).frames()
+    assert "a damaged PNG" in a.problem and "fails its CRC" in a.problem
+    assert "a damaged PNG: truncated" in b.problem
+    assert c.ok
+    assert capfd.readouterr().err == ""        # libpng writes straight to fd 2 when it decodes one
+
+
 def test_rgb_txt_comments_blank_lines_and_spaces_in_names(tmp_path):
     write_minimal_sequence(tmp_path, ["# color images", "# timestamp filename", "",
                                       "1.0 rgb/first image.png", "  ", "2.0 rgb/b.png"])

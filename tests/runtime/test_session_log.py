@@ -112,6 +112,27 @@ def test_slam_without_session_log_writes_none(slam_run, tmp_path):
     assert not (tmp_path / SESSION_FILE).exists() and (tmp_path / "trajectory.tum").exists()
 
 
+def test_the_commands_that_log_a_session_take_no_session_log(slam_run, tmp_path, capsys):
+    from wvr.cli import build_parser, main
+
+    seq_path, _, _ = slam_run
+    assert main(["slam", str(seq_path), "--out", str(tmp_path / "s"), "--max-frames", "3", "--no-session-log"]) == 0
+    assert not (tmp_path / "s" / SESSION_FILE).exists() and (tmp_path / "s" / "trajectory.tum").exists()
+    assert main(["slam", str(seq_path), "--out", str(tmp_path / "t"), "--max-frames", "3"]) == 0
+    assert (tmp_path / "t" / SESSION_FILE).exists()                  # the default still logs
+    for argv in (["slam"], ["sim", "run"], ["run"], ["station"], ["track"]):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(argv + ["--help"])
+        out = capsys.readouterr().out
+        assert "--no-session-log" in out and "do not write session.mcap" in " ".join(out.split()), argv
+
+
+def test_closed_loop_without_session_log_writes_none(twin, tmp_path):
+    run_on_twin(twin, "workbench-static", Task("fixate", np.array([[0.0, -0.6, 0.86]])), tmp_path, seconds=0.3,
+                progress=False, session_log=False)
+    assert not (tmp_path / SESSION_FILE).exists() and (tmp_path / "joints.csv").exists()
+
+
 def test_closed_loop_session_holds_images_joints_imu_pose_and_target(twin, tmp_path):
     target = np.array([0.0, -0.6, 0.86])
     run_on_twin(twin, "workbench-static", Task("fixate", target[None]), tmp_path, seconds=1.0, progress=False)
@@ -227,3 +248,20 @@ def test_station_session_logs_the_operators_actions(tmp_path):
     t_ns, _ = tum_ns(tmp_path / "trajectory.tum")
     assert [m[0] for m in topics["/slam/pose"]] == t_ns
     assert meta["session"]["ended"] == "stopped"
+
+
+def test_station_without_session_log_writes_its_files_but_no_session(tmp_path):
+    from test_station_api import StillRobot
+
+    from runtime.apps.station import Station
+
+    robot = StillRobot()
+    st = Station(robot, robot.target, port=0, token="secret-token-123", out=tmp_path, seconds=600,
+                 session_log=False).open()
+    try:
+        st.wait_started(timeout=600)
+        time.sleep(0.3)
+    finally:
+        st.close()
+    assert (tmp_path / "trajectory.tum").exists() and not (tmp_path / SESSION_FILE).exists()
+    assert SESSION_FILE not in st.written

@@ -287,6 +287,10 @@ def test_bad_input_raises_value_errors(tmp_path):
         stabilise_sequence(seq, tmp_path / "o", fovea=(640, 240), progress=False)
     with pytest.raises(ValueError, match="width, height"):
         stabilise_sequence(seq, tmp_path / "o", fovea="320x240", progress=False)
+    (seq / "rgb.txt").write_text("# timestamp filename\n")
+    with pytest.raises(ValueError, match=r"rgb.txt: lists no frames; give a sequence with images"):
+        stabilise_sequence(seq, tmp_path / "empty", progress=False)
+    assert not (tmp_path / "empty").exists()
     with pytest.raises(ValueError, match="ransac_threshold_rad"):
         StabiliseSettings(ransac_threshold_rad=2.0)
     with pytest.raises(ValueError, match="lk_window_px"):

@@ -244,6 +244,18 @@ def test_bad_start_window_raises(region):
         MeanShiftTracker(frames[0], region)
 
 
+def test_a_bad_start_window_is_printed_as_the_user_gave_it_with_the_bounds():
+    from runtime.vision2d.hyperplane import check_region
+
+    with pytest.raises(ValueError) as e:
+        check_region(np.array([0.0, 0.0, 1.0, 1.0]), 640, 480)     # as --init arrives: numpy floats
+    assert "start window 0,0,1,1 must have" in str(e.value) and "np.float64" not in str(e.value)
+    with pytest.raises(ValueError) as e:
+        check_region((0, 0, 640, 480), 640, 480)
+    assert "x -0.5..639.5, y -0.5..479.5" in str(e.value) and "e.g. 0,0,639,479" in str(e.value)
+    np.testing.assert_allclose(check_region((0, 0, 639, 479), 640, 480)[2], [639, 479])   # the advice is taken
+
+
 def test_blank_region_raises():
     with pytest.raises(ValueError, match="no texture"):
         HyperplaneTracker(np.full((120, 160), 90, np.uint8), (20, 20, 60, 50))

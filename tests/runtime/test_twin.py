@@ -199,6 +199,15 @@ def test_mount_toml_on_the_chest_and_bad_files(tmp_path):
     bad.write_text('[mount]\nsegment = "chest"\nposition_m = [0, 0, 0]\nforward = [0, 0, 1]\nup = [0, 0, 1]\n')
     with pytest.raises(MountError, match="parallel"):
         load_mount(bad)
+    ok = 'segment = "chest"\nposition_m = [0.0, -0.14, 0.06]\nforward = [0, -1, 0]\nup = [0, 0, 1]\n'
+    bad.write_text('[mount]\n' + ok + 'stature_m = 50.0\n')        # placement refuses a 50 m person
+    with pytest.raises(MountError, match=r"stature_m = 50 is not a person's stature; give metres, 0.5 to 2.5"):
+        load_mount(bad)
+    bad.write_text('[mount]\n' + ok.replace("[0.0, -0.14, 0.06]", "[100.0, 0.0, 0.0]"))
+    with pytest.raises(MountError, match=r"position_m = \[100.0, 0.0, 0.0\] is 100 m from the chest"):
+        load_mount(bad)
+    bad.write_text('[mount]\n' + ok + 'stature_m = 1.75\n')
+    assert load_mount(bad).segment == "chest"
 
 
 def test_twin_renders_after_pyvista_has_closed_its_egl_window(tmp_path):

@@ -247,6 +247,22 @@ def test_slam_and_eval(seq, slam_result):
     assert "RPE over 1 s: cannot be computed" in r.stdout
 
 
+def test_eval_skips_and_counts_an_8_bit_depth_image(seq, slam_result, tmp_path, capsys):
+    import shutil
+
+    import cv2
+
+    copy = tmp_path / "seq"
+    shutil.copytree(seq, copy)
+    first = sorted((copy / "depth").glob("*.png"))[0]          # the frame the target's features start in
+    cv2.imwrite(str(first), (cv2.imread(str(first), cv2.IMREAD_UNCHANGED) // 256).astype(np.uint8))
+    r = in_process(capsys, "eval", copy, slam_result)
+    assert r.returncode == 0, r.stderr
+    assert "ATE (no alignment)" in r.stdout and "map against the true depth" in r.stdout
+    assert r.stderr.count("\n") == 1 and "warning: 1 depth images skipped" in r.stderr
+    assert f"{first.name}: not a 16-bit depth PNG" in r.stderr
+
+
 def test_eval_warns_when_the_ground_truth_covers_a_third(tmp_path):
     from kinematics.camera import CameraIntrinsics
     from runtime.sequence import SequenceWriter, write_trajectory

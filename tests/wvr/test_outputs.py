@@ -328,6 +328,17 @@ def test_a_stop_that_cannot_latch_says_it_is_not_latched(tmp_path, capsys):
     assert one_line(err) and "NOT latched" in err
 
 
+@pytest.mark.parametrize("angles, words", [
+    ("0,0,80.0001", "cyclotorsion 80.0001 deg is beyond the head's range -80.0..80.0 deg"),
+    ("-80.25,0,0", "elevation -80.25 deg is beyond the head's range -80.0..80.0 deg"),
+])
+def test_goto_beyond_the_range_prints_the_angle_as_given(tmp_path, capsys, angles, words):
+    rig = servo_only_rig(tmp_path, "/dev/null")            # refused before the board is opened
+    assert main(["head", "--rig", str(rig), "goto", angles]) == 2
+    err = capsys.readouterr().err
+    assert one_line(err) and words in err and "nothing was sent" in err, err
+
+
 # ------------------------------------------------------------------ progress in log files
 
 def test_progress_off_a_terminal_is_a_line_every_few_seconds(capsys):

@@ -84,7 +84,7 @@ class Station:
     def __init__(self, robot, start_target, host: str = "127.0.0.1", port: int = 8080, token: str | None = None,
                  out: str | Path | None = None, truth=None, seconds: float | None = None,
                  settings: ControllerSettings = ControllerSettings(), pace: bool = True, view_rate_hz: float = 2.0,
-                 notes: dict | None = None, on_finish=None):
+                 notes: dict | None = None, on_finish=None, session_log: bool = True):
         self.token, self.token_generated = resolve_token(token)
         self.wearer_token = wearer_token_for(self.token)
         self.host = host
@@ -95,7 +95,7 @@ class Station:
         self.notes = dict(notes or {})
         self.live = LiveStation(robot, start_target, settings=settings, truth=truth, seconds=seconds, pace=pace,
                                 on_finish=on_finish)
-        if self.out is not None:
+        if self.out is not None and session_log:
             self.live.recorder = LoopRecorder(self.out / SESSION_FILE)
         self._port = port
         self._view_rate = view_rate_hz
@@ -198,7 +198,8 @@ class Station:
         if self.http is not None:
             self.http.close()
         if self.out is not None and self.live.started.is_set():
-            mcap = self.live.recorder.close(self.live.run.ended or "stopped")   # before station.json says complete
+            mcap = self.live.recorder is not None and \
+                self.live.recorder.close(self.live.run.ended or "stopped")   # before station.json says complete
             self.written = record.finish(self.out, self.live.run, self.notes) + ([SESSION_FILE] if mcap else [])
         elif self._begun:                  # it never ran: say so, never "running"
             record.failed(self.out, self.live.run.ended or "failed to start", self.notes)

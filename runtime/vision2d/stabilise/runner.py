@@ -203,6 +203,9 @@ def stabilise_sequence(seq_path, out_dir, fovea=(320, 240), use_imu: bool = Fals
     if use_imu and seq.imu is None:
         raise ValueError(f"{Path(seq_path) / 'imu.txt'}: missing, so the IMU cannot be used; "
                          f"run without use_imu (--imu) or add imu.txt (timestamp wx wy wz ax ay az)")
+    if len(seq) == 0:                       # before the folder is made: a refusal leaves nothing
+        raise ValueError(f"{Path(seq_path) / 'rgb.txt'}: lists no frames; give a sequence with images "
+                         f"(lines 'timestamp path' in rgb.txt)")
     with output_folder(out_dir, kind="stabilise") as out:
         (out / "fovea").mkdir(exist_ok=True)
         run = _stabilise_frames(seq, out, Stabiliser(seq.camera, fsize, settings), seq.imu if use_imu else None,
