@@ -158,20 +158,6 @@ def _cells(P, i0, i1, scale, off, lo, d1, d2, out):
 
 
 @njit(cache=True)
-def _turn_into(R, origin, P, i0, i1, out, k):
-    """out[:, k:k + i1 - i0] = R @ P[:, i0:i1] + origin (volume._turn for one rotation)."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
-                                                   R[2, 0], R[2, 1], R[2, 2])
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    X, Y, Z = P[0], P[1], P[2]
-    for i in range(i0, i1):
-        x, y, z = X[i], Y[i], Z[i]
-        out[0, k + i - i0] = ((r00 * x + r01 * y) + r02 * z) + o0
-        out[1, k + i - i0] = ((r10 * x + r11 * y) + r12 * z) + o1
-        out[2, k + i - i0] = ((r20 * x + r21 * y) + r22 * z) + o2
-
-
-@njit(cache=True)
 def _turned_cells(R, origin, P, i0, i1, scale, off, lo, d1, d2, out):
     """out[:i1 - i0] = lattice cells of R @ P[:, i0:i1] + origin (without storing the points)."""
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
@@ -224,6 +210,35 @@ def _turned_cells_aligned(R, j, origin, P, fixed, i0, i1, scale, off, lo, d1, d2
         a = np.int32(np.floor(((ruu * x + ruw * y) + ou) * scale - fu)) - lu
         c = np.int32(np.floor(((rwu * x + rww * y) + ow) * scale - fw)) - lw
         out[i - i0] = a * su + c * sw + fixed[i]
+
+
+@njit(cache=True)
+def _turn_cells_into(R, j, origin, P, i0, i1, scale, off, lo, d1, d2, buf, cell):
+    """buf[:, :i1 - i0] = R @ P[:, i0:i1] + origin (volume._turn) and cell[:i1 - i0] their C-order
+    cells (_cells), in one pass; for a turn about +-e_j (j >= 0) coordinate j is P[j] + origin[j]
+    and the others two products each (the same values: R's row j is e_j, its column j zeros)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
+                                                   R[2, 0], R[2, 1], R[2, 2])
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    f0, f1, f2 = off[0], off[1], off[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    X, Y, Z = P[0], P[1], P[2]
+    B0, B1, B2 = buf[0], buf[1], buf[2]
+    for i in range(i0, i1):
+        x, y, z = X[i], Y[i], Z[i]
+        if j == 0:
+            u, v, w = x + o0, (r11 * y + r12 * z) + o1, (r21 * y + r22 * z) + o2
+        elif j == 1:
+            u, v, w = (r00 * x + r02 * z) + o0, y + o1, (r20 * x + r22 * z) + o2
+        elif j == 2:
+            u, v, w = (r00 * x + r01 * y) + o0, (r10 * x + r11 * y) + o1, z + o2
+        else:
+            u, v, w = ((r00 * x + r01 * y) + r02 * z) + o0, ((r10 * x + r11 * y) + r12 * z) + o1, ((r20 * x + r21 * y) + r22 * z) + o2
+        B0[i - i0], B1[i - i0], B2[i - i0] = u, v, w
+        a = np.int32(np.floor(u * scale - f0)) - l0
+        b = np.int32(np.floor(v * scale - f1)) - l1
+        c = np.int32(np.floor(w * scale - f2)) - l2
+        cell[i - i0] = (a * d1 + b) * d2 + c
 
 
 @njit(cache=True)
@@ -391,6 +406,7 @@ def _sweep_thin(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s,
     buf = np.empty((3, m_max))
     cell = np.empty(m_max, np.int32)
     R = np.empty((3, 3))
+    j = _aligned_axis(axis)
     K = 0
     # Made in reverse of volume._sweep's order (ends, arcs by band and angle, boxes) and kept at
     # first reach: each half-voxel keeps the point that order makes last.
@@ -402,13 +418,11 @@ def _sweep_thin(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s,
         n = _band_angles(counts, b, lo, hi, ang)
         for a in range(n, 0, -1):
             _axis_angle(axis, ang[a], R)
-            _turn_into(R, origin, members, start[b], start[b + 1], buf, 0)
-            _cells(buf, 0, m, scale2, off2, lo_i, d1, d2, cell)
+            _turn_cells_into(R, j, origin, members, start[b], start[b + 1], scale2, off2, lo_i, d1, d2, buf, cell)
             K = _keep_new(buf, m, cell, bits, out, kept, K)
     for end in (hi, lo):
         _axis_angle(axis, end, R)
-        _turn_into(R, origin, samples, 0, S, buf, 0)
-        _cells(buf, 0, S, scale2, off2, lo_i, d1, d2, cell)
+        _turn_cells_into(R, j, origin, samples, 0, S, scale2, off2, lo_i, d1, d2, buf, cell)
         K = _keep_new(buf, S, cell, bits, out, kept, K)
     return _in_cell_order(out, kept, K, bits)
 
