@@ -647,6 +647,21 @@ def _pose_links(axis, origin, q, R_out, p_out):
 
 
 @njit(cache=True)
+def _pose_links_grid(origin, Rg, u, v, w, R_out, p_out):
+    """_pose_links at the grid angles (u, v, w), from the joints' rotations Rg (3, steps, 3, 3)
+    at the grid angles, made once (the same matrices _axis_angle makes there)."""
+    for r in range(3):
+        for c in range(3):
+            R_out[0, r, c] = 1.0 if r == c else 0.0
+        p_out[0, r] = 0.0
+    for i in range(3):
+        for r in range(3):
+            p_out[i + 1, r] = p_out[i, r] + (R_out[i, r, 0] * origin[i, 0] + R_out[i, r, 1] * origin[i, 1]
+                                             + R_out[i, r, 2] * origin[i, 2])
+        _matmul3(R_out[i], Rg[i, u if i == 0 else (v if i == 1 else w)], R_out[i + 1])
+
+
+@njit(cache=True)
 def _posed(R_links, p_links, link, center, out_c, out_R):
     for r in range(3):
         out_c[r] = (R_links[link, r, 0] * center[0] + R_links[link, r, 1] * center[1]
@@ -664,9 +679,12 @@ def collision_count(axis, origin, lo, hi, steps, part_link, part_center, part_ha
     for k in range(3):
         _linspace(lo[k], hi[k], steps, grid[k])
     hit = np.zeros((steps, steps, steps), np.bool_)
+    Rg = np.empty((3, steps, 3, 3))
+    for k in range(3):
+        for u in range(steps):
+            _axis_angle(axis[k], grid[k, u], Rg[k, u])
     R_links = np.empty((4, 3, 3))
     p_links = np.empty((4, 3))
-    q = np.empty(3)
     cA, cB = np.empty(3), np.empty(3)
     RA, RB = np.empty((3, 3)), np.empty((3, 3))
     n = np.empty(3, np.int64)
@@ -678,8 +696,7 @@ def collision_count(axis, origin, lo, hi, steps, part_link, part_center, part_ha
         for u in range(n[0]):
             for v in range(n[1]):
                 for w in range(n[2]):
-                    q[0], q[1], q[2] = grid[0, u], grid[1, v], grid[2, w]
-                    _pose_links(axis, origin, q, R_links, p_links)
+                    _pose_links_grid(origin, Rg, u, v, w, R_links, p_links)
                     _posed(R_links, p_links, part_link[i], part_center[i], cA, RA)
                     _posed(R_links, p_links, part_link[j], part_center[j], cB, RB)
                     if obb_penetration(cA, RA, part_half[i], cB, RB, part_half[j]) > 0.0:
