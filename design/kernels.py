@@ -821,3 +821,16 @@ def workload_torques(R, z, W, DW, wl, dwl, a_base, qdd, origin, mass, com, inert
             n0, n1, n2 = N[i, 0] + n0 + x0 + y0, N[i, 1] + n1 + x1 + y1, N[i, 2] + n2 + x2 + y2
             f0, f1, f2 = F[i, 0] + f0, F[i, 1] + f1, F[i, 2] + f2
             tau[t, i] = (z[t, i, 0] * n0 + z[t, i, 1] * n1 + z[t, i, 2] * n2) + armature[i] * qdd[t, i]
+
+
+@njit(cache=True)
+def torque_summary(tau, dt, energy, peak):
+    """energy (T,) = (tau ** 2).sum(axis=1) * dt (numpy adds a row's three squares in order, as
+    here), peak (3,) = np.abs(tau).max(axis=0), for tau (T, 3) N m and dt (T,) s: one pass
+    instead of four numpy temporaries (the sum over T stays numpy's, for its rounding)."""
+    for i in range(3):
+        peak[i] = 0.0
+    for t in range(tau.shape[0]):
+        a, b, c = tau[t, 0], tau[t, 1], tau[t, 2]
+        energy[t] = ((a * a + b * b) + c * c) * dt[t]
+        peak[0], peak[1], peak[2] = max(peak[0], abs(a)), max(peak[1], abs(b)), max(peak[2], abs(c))
