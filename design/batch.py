@@ -225,6 +225,8 @@ class Evaluator:
         F = np.empty((n, 7))
         G = np.empty((n, 3))
         tau = np.empty((len(w.dt), 3))
+        dt = np.ascontiguousarray(w.dt, float)
+        energy, peak = np.empty(len(dt)), np.empty(3)
         voxel_m3 = s.voxel_m ** 3
         for d in range(n):
             c, sz = arrays.center[d], arrays.size[d]
@@ -238,9 +240,10 @@ class Evaluator:
             F[d, 1] = float(np.float64(hits) / s.collision_steps ** 3)
             K.workload_torques(plan.R, plan.z, plan.W, plan.DW, plan.wl, plan.dwl, plan.a_base, plan.qdd,
                                arrays.origin[d], mass[d], com[d], inertia[d], arrays.armature, tau)
-            F[d, 2] = float(np.sum((tau ** 2).sum(axis=1) * w.dt))
-            F[d, 3] = float(np.abs(tau).max())
-            G[d, 0] = float((np.abs(tau).max(axis=0) - arrays.max_torque).max())
+            K.torque_summary(tau, dt, energy, peak)
+            F[d, 2] = float(np.sum(energy))
+            F[d, 3] = float(peak.max())
+            G[d, 0] = float((peak - arrays.max_torque).max())
             rest = K.rest_penetration_max(arrays.axis, arrays.origin[d], arrays.link, c, half[d], cross_pairs)
             same = K.rest_penetration_max(arrays.axis, arrays.origin[d], arrays.link, c, half[d], same_pairs)
             G[d, 1] = float(rest + s.clearance_m)

