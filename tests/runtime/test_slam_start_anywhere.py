@@ -100,3 +100,23 @@ def test_a_sequence_with_nothing_to_start_from_ends_without_a_trajectory(tmp_pat
                        capture_output=True, text=True)
     assert p.returncode == 2 and "no start could be made" in p.stderr and "Traceback" not in p.stderr
     assert not (tmp_path / "out2" / "trajectory.tum").exists()
+
+
+def test_the_start_warms_a_copy_of_the_track_and_changes_nothing(walk, tmp_path, monkeypatch):
+    """MonoSLAM._warm_up: one frame tracked at the start on a copy of the track (so the compiled
+    kernels are loaded there, not in the first tracked frame), and the run's results the same
+    to the bit as without it."""
+    from runtime.slam.system import MonoSLAM
+    from runtime.slam.track import Track
+
+    _, copies = walk
+    stepped = []
+    step = Track.step
+    monkeypatch.setattr(Track, "step", lambda self, *a, **k: (stepped.append((id(self), a[4].frame)), step(self, *a, **k))[1])
+    run_slam(copies["depth"], tmp_path / "warm", settings=CAMERA_ONLY, progress=False, max_frames=20)
+    warm_id, warm_frame = stepped[0]
+    assert warm_frame == 1 and all(i != warm_id for i, _ in stepped[1:]) and len(stepped) == 1 + 19
+    monkeypatch.setattr(MonoSLAM, "_warm_up", lambda self, g, t: None)
+    run_slam(copies["depth"], tmp_path / "cold", settings=CAMERA_ONLY, progress=False, max_frames=20)
+    for name in ("trajectory.tum", "map.csv"):
+        assert (tmp_path / "warm" / name).read_bytes() == (tmp_path / "cold" / name).read_bytes(), name
