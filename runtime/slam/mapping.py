@@ -16,7 +16,7 @@ from .corners import min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
 from .filter import FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, point_conversions
-from .matching import fit_normal_kernel
+from .normal_fit import fit_normal_kernel
 from .measurement import predict_points, predict_uv, ray_from_pixel
 from .motion import f_and_dfdx
 from .quaternion import quat_to_rotation

@@ -20,10 +20,9 @@ the sub-pixel phase, and a template predicted with a slightly wrong plane or pos
 translated, is pulled off its feature by a few tenths, a bias that grows as the view leaves the
 first one (the twin's tracks measured against their true projections; benchmarks/NOTES.md).
 
-The plane a natural feature's warp uses starts as a guess (facing its first view); as the view
-turns, the normal is fitted to the feature's looks (fit_normal_kernel: the candidate normal
-whose warp of the first-view patch best matches the image at the feature's match, after Molton,
-Davison and Reid, BMVC 2004).
+The templates' warp is in template_warp.py; the plane a natural feature's warp uses starts as a
+guess (facing its first view) and, as the view turns, is fitted to the feature's looks
+(normal_fit.py).
 """
 
 from __future__ import annotations
@@ -37,7 +36,8 @@ from kinematics.camera import CameraIntrinsics, lens_kernel_args
 from .kernels import compiled_kernel
 from .quaternion import quat_to_rotation
 from .search import parabola_offset
-from .templates import MapFeature, plane_corners_kernel
+from .template_warp import warp_kernel
+from .templates import MapFeature
 
 #: A window flatter than this grey-level variance cannot hold a match (ZNCC is noise there).
 FLAT_VARIANCE = 4.0
@@ -60,49 +60,6 @@ COARSE_LEVEL_MOST = 8
 #: and a few descents, not a full correlation at every pixel.
 VALLEY_EXHAUSTIVE_MAX_PX = 6000
 
-
-@compiled_kernel()
-def _homography(src, dst):
-    """(3, 3) H with dst ~ H src for 4 point pairs (4, 2) (DLT with h33 = 1); NaN if singular."""
-    A = np.zeros((8, 8))
-    b = np.zeros(8)
-    for k in range(4):
-        x, y = src[k, 0], src[k, 1]
-        u, v = dst[k, 0], dst[k, 1]
-        A[2 * k, 0], A[2 * k, 1], A[2 * k, 2] = x, y, 1.0
-        A[2 * k, 6], A[2 * k, 7] = -u * x, -u * y
-        b[2 * k] = u
-        A[2 * k + 1, 3], A[2 * k + 1, 4], A[2 * k + 1, 5] = x, y, 1.0
-        A[2 * k + 1, 6], A[2 * k + 1, 7] = -v * x, -v * y
-        b[2 * k + 1] = v
-    H = np.full((3, 3), np.nan)
-    if abs(np.linalg.det(A)) < 1e-12:
-        return H
-    h = np.linalg.solve(A, b)
-    for i in range(8):
-        H[i // 3, i % 3] = h[i]
-    H[2, 2] = 1.0
-    return H
-
-
-@compiled_kernel()
-def _warp(patch, H, t):
-    """The (t, t) template whose pixel (a, b) samples ``patch`` bilinearly at H (a, b, 1); None
-    flag False if any sample falls outside the patch."""
-    p = patch.shape[0]
-    out = np.empty((t, t), np.float32)
-    for b in range(t):
-        for a in range(t):
-            w = H[2, 0] * a + H[2, 1] * b + H[2, 2]
-            x = (H[0, 0] * a + H[0, 1] * b + H[0, 2]) / w
-            y = (H[1, 0] * a + H[1, 1] * b + H[1, 2]) / w
-            if not (0.0 <= x <= p - 1.001 and 0.0 <= y <= p - 1.001):
-                return out, False
-            x0, y0 = int(x), int(y)
-            fx, fy = x - x0, y - y0
-            out[b, a] = ((1 - fx) * (1 - fy) * patch[y0, x0] + fx * (1 - fy) * patch[y0, x0 + 1]
-                         + (1 - fx) * fy * patch[y0 + 1, x0] + fx * fy * patch[y0 + 1, x0 + 1])
-    return out, True
 
 
 @compiled_kernel()
@@ -504,53 +461,6 @@ def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
     return cu, cv, True
 
 
-@compiled_kernel(_homography, _warp)
-def _template_from_corners(patch, corners, t, ou, ov):
-    """The (t, t) template whose pixel (a, b) is the current image's (ou + a, ov + b), sampled
-    from the first-view ``patch`` through the homography that takes the template's corners in
-    the patch to ``corners`` (>= 4, 2) px in the current image; and whether the warp was valid
-    (every sample inside the patch)."""
-    h = t // 2
-    ph = patch.shape[0] // 2
-    src = np.empty((4, 2))
-    dst = np.empty((4, 2))
-    src[0, 0], src[0, 1] = ph - h, ph - h
-    src[1, 0], src[1, 1] = ph + h, ph - h
-    src[2, 0], src[2, 1] = ph + h, ph + h
-    src[3, 0], src[3, 1] = ph - h, ph + h
-    for k in range(4):
-        dst[k, 0] = corners[k, 0] - ou
-        dst[k, 1] = corners[k, 1] - ov
-    Hm = _homography(dst, src)
-    if not np.isfinite(Hm).all():
-        return np.empty((t, t), np.float32), False
-    return _warp(patch, Hm, t)
-
-
-@compiled_kernel(plane_corners_kernel, _template_from_corners)
-def warp_kernel(templates, patches, warp, rays0, normals, r0s, ys, r, R, model, lens):
-    """Each feature's template predicted for the current camera (r, R): (m, t, t) float32, and
-    whether it was warped (m,) (else it is the first-view template)."""
-    m, t = templates.shape[0], templates.shape[1]
-    h = t // 2
-    out = templates.copy()
-    done = np.zeros(m, np.bool_)
-    for i in range(m):
-        if not warp[i]:
-            continue
-        corners = plane_corners_kernel(rays0[i], normals[i], r0s[i], ys[i], r, R, model, lens)
-        if not np.isfinite(corners).all():
-            continue
-        side = math.hypot(corners[1, 0] - corners[0, 0], corners[1, 1] - corners[0, 1]) / (2 * h)
-        if not 0.5 < side < 2.0:                  # the template no longer describes the feature
-            continue
-        # template pixel (a, b) <-> current image (cu - h + a, cv - h + b) <-> first-view patch
-        tpl, inside = _template_from_corners(patches[i], corners, t, corners[4, 0] - h, corners[4, 1] - h)
-        if inside:
-            out[i] = tpl
-            done[i] = True
-    return out, done
-
 
 @compiled_kernel(_zncc_in_ellipse, _zncc_coarse_to_fine, _best_in_grid, refine_affine_kernel)
 def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
@@ -640,110 +550,3 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
                              n_sigma * n_sigma, float(max_area), float(max_score))
     found = score <= max_score
     return z, score, found
-
-
-@compiled_kernel()
-def _zncc_at(grey, tpl, u, v):
-    """``2 (1 - ZNCC)`` of the (t, t) template ``tpl`` against the window of ``grey`` centred on
-    the integer pixel (u, v); 2 when either is flat or the window leaves the image."""
-    H, W = grey.shape
-    t = tpl.shape[0]
-    h = t // 2
-    if u - h < 0 or v - h < 0 or u + h >= W or v + h >= H:
-        return 2.0
-    n = t * t
-    mt = 0.0
-    mw = 0.0
-    for b in range(t):
-        for a in range(t):
-            mt += tpl[b, a]
-            mw += grey[v - h + b, u - h + a]
-    mt /= n
-    mw /= n
-    stw = 0.0
-    stt = 0.0
-    sww = 0.0
-    for b in range(t):
-        for a in range(t):
-            dt = tpl[b, a] - mt
-            dw = grey[v - h + b, u - h + a] - mw
-            stw += dt * dw
-            stt += dt * dt
-            sww += dw * dw
-    if stt < 1e-9 or sww < FLAT_VARIANCE * n:
-        return 2.0
-    return 2.0 * (1.0 - stw / math.sqrt(stt * sww))
-
-
-@compiled_kernel(plane_corners_kernel, _template_from_corners, _zncc_at)
-def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, normals):
-    """The score ``2 (1 - ZNCC)`` (k,) of the feature's first-view patch warped into the current
-    view by the plane through ``y`` with each of ``normals`` (k, 3), centred on the feature's
-    match ``z`` (2,) px, against the image there; 2 where a normal gives no valid warp."""
-    k = normals.shape[0]
-    h = t // 2
-    out = np.full(k, 2.0)
-    zu, zv = int(round(z[0])), int(round(z[1]))
-    for c in range(k):
-        corners = plane_corners_kernel(rays0, normals[c], r0, y, r, R, model, lens)
-        if not np.isfinite(corners).all():
-            continue
-        cu, cv = corners[4, 0], corners[4, 1]
-        if abs(cu - z[0]) > 2.0 or abs(cv - z[1]) > 2.0:
-            continue                      # the first view's centre lands off the match on this plane
-        # The warped patch moved so that its centre lands on the match, sampled on the grid of
-        # the image window about the match's pixel: only the plane's shape is compared.
-        tpl, inside = _template_from_corners(patch, corners, t, cu - h - (z[0] - zu), cv - h - (z[1] - zv))
-        if inside:
-            out[c] = _zncc_at(grey, tpl, zu, zv)
-    return out
-
-
-@compiled_kernel()
-def candidate_normals(d0, tilts_deg, n_azimuth):
-    """(k, 3) unit normals tilted from the direction ``d0`` (3,) by each of ``tilts_deg`` (a 0
-    gives ``d0`` itself, once) towards ``n_azimuth`` directions evenly spread about it."""
-    d = d0 / math.sqrt(d0[0] ** 2 + d0[1] ** 2 + d0[2] ** 2)
-    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(d, a)
-    e1 /= math.sqrt(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2)
-    e2 = np.cross(d, e1)
-    k = 0
-    for tilt in tilts_deg:
-        k += 1 if tilt == 0.0 else n_azimuth
-    out = np.empty((k, 3))
-    k = 0
-    for tilt in tilts_deg:
-        if tilt == 0.0:
-            out[k] = d
-            k += 1
-            continue
-        th = math.radians(tilt)
-        for j in range(n_azimuth):
-            ph = 2 * math.pi * j / n_azimuth
-            out[k] = math.cos(th) * d + math.sin(th) * (math.cos(ph) * e1 + math.sin(ph) * e2)
-            k += 1
-    return out
-
-
-@compiled_kernel(normal_scores_kernel, candidate_normals)
-def fit_normal_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, normal, tilts_deg, n_azimuth, fine_deg):
-    """The plane normal (3,) that best explains the feature's looks at its match ``z`` (2,) px
-    (normal_scores_kernel), coarse to fine: ``normal`` and the normals ``tilts_deg`` from the
-    direction to the first view, then ``fine_deg`` about the best of those (facing the first
-    view); and its score and that of ``normal``."""
-    d0 = r0 - y
-    d0 = d0 / math.sqrt(d0[0] ** 2 + d0[1] ** 2 + d0[2] ** 2)
-    coarse = candidate_normals(d0, tilts_deg, n_azimuth)
-    s0 = normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, normal.reshape(1, 3))[0]
-    sc = normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, coarse)
-    b = np.argmin(sc)
-    best, score = normal.copy(), s0
-    if sc[b] < score:
-        best, score = coarse[b].copy(), sc[b]
-    fine = candidate_normals(best, np.array([fine_deg]), n_azimuth)
-    sf = normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, fine)
-    for c in range(fine.shape[0]):
-        if sf[c] < score and fine[c, 0] * d0[0] + fine[c, 1] * d0[1] + fine[c, 2] * d0[2] > 0.2:
-            best, score = fine[c].copy(), sf[c]
-    return best, score, s0
