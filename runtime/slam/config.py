@@ -271,7 +271,7 @@ class MeasureSettings:
     template_px: int = 15                # the appearance template's side (odd), at 640 px width
     noise_every: int = 15                # frames between estimates of the image noise (new features' contrast)
     guide_first: int = 12                # features searched first to guide the rest (guided.py); 0: off
-    guide_area_px: float = 30_000.0      # guide when the chosen features' 3-sigma ellipses cover more, px^2
+    guide_area_px: float = 2_000.0       # guide when their 3-sigma ellipses average more, px^2 at 640 px width
     guide_floor_px: float = 1.0          # added in quadrature to a guided ellipse's axes (linearisation), px
 
 

@@ -128,7 +128,7 @@ class Measurement:
 
     def _guides(self, m: SlamMap, pred: Prediction, S: np.ndarray, feats: list) -> np.ndarray | None:
         """The features (indices into ``pred``) to search first when the chosen features' search
-        ellipses are large (MeasureSettings.guide_*): the most reliable, spread over the image;
+        ellipses are large on average (MeasureSettings.guide_*): the most reliable, spread over the image;
         None to search all at once."""
         g = self.settings.measure
         n = len(pred.ks)
@@ -136,7 +136,8 @@ class Measurement:
             return None
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         area = 9 * math.pi * np.sqrt(np.maximum(det, 0))
-        if not area.sum() > g.guide_area_px:
+        # Guiding costs about a millisecond: worth it only where the ellipses are large.
+        if not area.mean() > g.guide_area_px * (self.cam.width / 640.0) ** 2:
             return None
         priority = np.array([f.reliability for f in feats]) + 1e-6 * np.log(np.maximum(det, 1e-12))
         return self._spread(pred.uv, priority, [f.known for f in feats], g.guide_first, np.arange(n))
