@@ -280,12 +280,9 @@ def _sweep_plan(boundary, axis, lo, hi, max_step):
 
 
 @njit(cache=True)
-def _turn_bounds(P, n, axis, origin, scale, off, lo_i, hi_i):
-    """Widen the lattice box [lo_i, hi_i] (cells of edge 1 / scale) to hold every turn of the
-    points P[:, :n] about ``axis`` (through the frame's origin), shifted by ``origin``: the
-    cylinder about the axis that holds them (axial extent kept, radius kept)."""
-    if n == 0:
-        return
+def _turn_extent(P, n, axis):
+    """The cylinder about ``axis`` (through the frame's origin) that holds the points P[:, :n]
+    and every turn of them: their least and greatest axial coordinates and largest radius."""
     a_min, a_max, rr = np.inf, -np.inf, 0.0
     for i in range(n):
         ap = axis[0] * P[0, i] + axis[1] * P[1, i] + axis[2] * P[2, i]
@@ -294,7 +291,17 @@ def _turn_bounds(P, n, axis, origin, scale, off, lo_i, hi_i):
             v = P[d, i] - axis[d] * ap
             s += v * v
         a_min, a_max, rr = min(a_min, ap), max(a_max, ap), max(rr, s)
-    rr = math.sqrt(rr)
+    return a_min, a_max, math.sqrt(rr)
+
+
+@njit(cache=True)
+def _turn_bounds(P, n, axis, origin, scale, off, lo_i, hi_i):
+    """Widen the lattice box [lo_i, hi_i] (cells of edge 1 / scale) to hold every turn of the
+    points P[:, :n] about ``axis`` (through the frame's origin), shifted by ``origin``: the
+    cylinder about the axis that holds them (axial extent kept, radius kept)."""
+    if n == 0:
+        return
+    a_min, a_max, rr = _turn_extent(P, n, axis)
     for d in range(3):
         ext = rr * math.sqrt(max(1.0 - axis[d] * axis[d], 0.0))
         x0 = origin[d] + min(axis[d] * a_min, axis[d] * a_max) - ext
@@ -500,15 +507,7 @@ def _count_final(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s
     boxes = np.empty((3, _box_count(box_s, spacing)))
     _box_points(box_c, box_s, spacing, boxes, 0)
     # Bound of the turned points: axial coordinate kept, radius kept.
-    a_min, a_max, rr = np.inf, -np.inf, 0.0
-    for i in range(S):
-        ap = axis[0] * samples[0, i] + axis[1] * samples[1, i] + axis[2] * samples[2, i]
-        s = 0.0
-        for d in range(3):
-            v = samples[d, i] - axis[d] * ap
-            s += v * v
-        a_min, a_max, rr = min(a_min, ap), max(a_max, ap), max(rr, s)
-    rr = math.sqrt(rr)
+    a_min, a_max, rr = _turn_extent(samples, S, axis)
     lo_i = np.empty(3, np.int32)
     hi_i = np.empty(3, np.int32)
     for d in range(3):
