@@ -50,6 +50,8 @@ def first_inliers(J: np.ndarray, S_first: np.ndarray, uv: np.ndarray, z: np.ndar
     det = S_first[hyp, 0, 0] * S_first[hyp, 1, 1] - S_first[hyp, 0, 1] * S_first[hyp, 1, 0]
     ok = det > 0
     hyp, nu, det, Sh = hyp[ok], nu[ok], det[ok], S_first[hyp[ok]]
+    if not len(hyp):
+        return np.zeros(k, bool)
     # S_i^-1 nu_i in closed form, then each hypothesis's shift of every first prediction.
     w = np.stack([Sh[:, 1, 1] * nu[:, 0] - Sh[:, 0, 1] * nu[:, 1],
                   Sh[:, 0, 0] * nu[:, 1] - Sh[:, 1, 0] * nu[:, 0]], axis=1) / det[:, None]
@@ -58,23 +60,24 @@ def first_inliers(J: np.ndarray, S_first: np.ndarray, uv: np.ndarray, z: np.ndar
     err = np.linalg.norm(z[None] - (uv[None] + shift), axis=2)    # (h, k); NaN where not found
     agree = found[None] & (err < threshold_px)
     agree[np.arange(len(hyp)), hyp] = True
-    if not len(hyp):
-        return np.zeros(k, bool)
     return agree[int(np.argmax(agree.sum(axis=1)))]
 
 
-def _conditional(J: np.ndarray, uv: np.ndarray, z: np.ndarray, given: np.ndarray, of: np.ndarray):
-    """The predictions (o, 2) and covariances (o, 2, 2) of the first features ``of`` given the
-    matches of ``given`` (both index arrays), from their joint covariance ``J`` (2k, 2k)."""
-    gi = np.ravel(np.column_stack([2 * given, 2 * given + 1]))
-    oi = np.ravel(np.column_stack([2 * of, 2 * of + 1]))
-    C = J[np.ix_(oi, gi)]
-    X = np.linalg.solve(J[np.ix_(gi, gi)], np.column_stack([(z[given] - uv[given]).reshape(-1), C.T]))
-    o = len(of)
-    mean = uv[of] + (C @ X[:, 0]).reshape(o, 2)
-    cov = J[np.ix_(oi, oi)] - C @ X[:, 1:]
-    blocks = np.stack([cov[2 * j:2 * j + 2, 2 * j:2 * j + 2] for j in range(o)]) if o else np.zeros((0, 2, 2))
-    return mean, blocks
+def _condition(C: np.ndarray, S_II: np.ndarray, nu_I: np.ndarray, S_oo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian conditional of o predicted measurements on matches I: the shift of their
+    predictions (o, 2) px, ``C S_II^-1 nu_I``, and their posterior covariances (o, 2, 2) px^2, the
+    blocks of ``S_oo - C S_II^-1 C^T``. ``C`` (2o, 2i) their cross-covariance with I, ``S_II``
+    (2i, 2i), ``nu_I`` (2i,) the matches' innovations, ``S_oo`` (o, 2, 2) their prior blocks.
+    Raises LinAlgError for a singular ``S_II``."""
+    X = np.linalg.solve(S_II, np.column_stack([nu_I, C.T]))
+    o = len(S_oo)
+    shift = (C @ X[:, 0]).reshape(o, 2)
+    return shift, S_oo - np.einsum("rai,rbi->rab", C.reshape(o, 2, -1), X[:, 1:].T.reshape(o, 2, -1))
+
+
+def _pairs(idx: np.ndarray) -> np.ndarray:
+    """The (u, v) rows (2n,) of the features ``idx`` (n,) in a (2k, ...) stacked matrix."""
+    return np.ravel(np.column_stack([2 * idx, 2 * idx + 1]))
 
 
 def _rescued(J: np.ndarray, uv: np.ndarray, z: np.ndarray, inl: np.ndarray, chi2: float) -> np.ndarray:
@@ -84,11 +87,14 @@ def _rescued(J: np.ndarray, uv: np.ndarray, z: np.ndarray, inl: np.ndarray, chi2
     others = np.flatnonzero(np.isfinite(z).all(axis=1) & ~inl)
     if not len(others):
         return out
+    given = np.flatnonzero(inl)
+    gi, oi = _pairs(given), _pairs(others)
+    S_oo = np.stack([J[2 * j:2 * j + 2, 2 * j:2 * j + 2] for j in others])
     try:
-        mean, cov = _conditional(J, uv, z, np.flatnonzero(inl), others)
+        shift, cov = _condition(J[np.ix_(oi, gi)], J[np.ix_(gi, gi)], (z[given] - uv[given]).reshape(-1), S_oo)
     except np.linalg.LinAlgError:
         return out
-    nu = z[others] - mean
+    nu = z[others] - (uv[others] + shift)
     out[others] = innovation_nis(nu, cov) < chi2
     return out
 
@@ -118,19 +124,14 @@ def guided_regions(state: State, pred: Prediction, S: np.ndarray, first: np.ndar
     inl = inl | _rescued(J, pf.uv, z_first, inl, ransac.rescue_chi2)
     if inl.sum() < min_inliers:
         return None
-    rows = np.flatnonzero(np.repeat(inl, 2))
-    S_II = J[np.ix_(rows, rows)]
-    nu_I = (z_first[inl] - pf.uv[inl]).reshape(-1)
+    rows = _pairs(np.flatnonzero(inl))
     C_RI = cross_covariance(state, pr, pf)[:, rows]            # (2r, 2i)
     try:
-        X = np.linalg.solve(S_II, np.column_stack([nu_I, C_RI.T]))
+        shift, S_post = _condition(C_RI, J[np.ix_(rows, rows)], (z_first[inl] - pf.uv[inl]).reshape(-1), S[rest])
     except np.linalg.LinAlgError:
         return None
-    uv = pr.uv + (C_RI @ X[:, 0]).reshape(-1, 2)
-    r = len(rest)
-    C = C_RI.reshape(r, 2, -1)
-    Xr = X[:, 1:].T.reshape(r, 2, -1)
-    S_post = S[rest] - np.einsum("rai,rbi->rab", C, Xr) + floor_px ** 2 * np.eye(2)
+    uv = pr.uv + shift
+    S_post = S_post + floor_px ** 2 * np.eye(2)
     det = S_post[:, 0, 0] * S_post[:, 1, 1] - S_post[:, 0, 1] * S_post[:, 1, 0]
     bad = ~(np.isfinite(uv).all(axis=1) & (S_post[:, 0, 0] > 0) & (det > 0))
     uv[bad], S_post[bad] = pr.uv[bad], S[rest][bad]            # kept at the prior
