@@ -148,17 +148,6 @@ def _brown_pixels(p, x, y):
     return _to_pixels(p, xd, yd, j00, j01, j10, j11)
 
 
-@_jit
-def _brown_many(p, xy):
-    """(N, 2) brown-distorted normalised points and (N, 2, 2) Jacobians."""
-    n = xy.shape[0]
-    out = np.empty((n, 2))
-    J = np.empty((n, 2, 2))
-    for i in range(n):
-        out[i, 0], out[i, 1], J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = _brown_point(p, xy[i, 0], xy[i, 1])
-    return out, J
-
-
 class Brown(_IterativeLens):
     """OpenCV's radial-tangential model, exactly as ``cv2.projectPoints`` with
     ``distCoeffs = [k1, k2, p1, p2, k3]``; inverted by 2-D Newton started at the distorted point."""
