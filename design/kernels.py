@@ -184,12 +184,12 @@ def _aligned_axis(axis):
 
 
 @njit(cache=True)
-def _fixed_cells(P, j, origin, scale, off, lo, d1, d2, out):
-    """out[i] = the coordinate j's share of the C-order cell of P[:, i] + origin (a turn about
-    e_j keeps that coordinate: row j of _axis_angle's matrix is e_j exactly)."""
+def _fixed_cells(P, n, j, origin, scale, off, lo, d1, d2, out):
+    """out[i] = the coordinate j's share of the C-order cell of P[:, i] + origin, i < n (a turn
+    about e_j keeps that coordinate: row j of _axis_angle's matrix is e_j exactly)."""
     stride = d1 * d2 if j == 0 else (d2 if j == 1 else 1)
-    for i in range(P.shape[1]):
-        out[i] = (np.int32(math.floor((P[j, i] + origin[j]) * scale - off[j])) - lo[j]) * stride
+    for i in range(n):
+        out[i] = (np.int32(np.floor((P[j, i] + origin[j]) * scale - off[j])) - lo[j]) * stride
 
 
 @njit(cache=True)
@@ -384,12 +384,16 @@ def _thin_points(P, scale2, off2):
 
 
 @njit(cache=True)
-def _sweep_thin(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale2, off2):
-    """volume._thin of volume._sweep's points and the parent's boxes (3, S'), parent frame: the
-    samples turned to both ends of the joint's range, the boundary samples to the angles between,
-    the boxes, thinned as they are made (one rotation's points in memory at a time, no sort)."""
+def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale2, off2,
+                ordered):
+    """volume._thin of volume._sweep's points and the parent's boxes, parent frame: the samples
+    samples[:, :S] turned to both ends of the joint's range, the boundary samples (3, B) to the
+    angles between, the boxes, thinned as they are made (one rotation's points in memory at a
+    time, no sort). Returns (P, K): the kept points are P[:, :K], one per half-voxel, in C order
+    of their half-voxels if ``ordered`` (as volume._thin has them; a sweep that thins them again
+    needs that order), else in the order kept (enough for _surface and _count_final, which do
+    not depend on it)."""
     members, start, counts = _sweep_plan(boundary, axis, lo, hi, max_step)
-    S = samples.shape[1]
     boxes = np.empty((3, _box_count(box_s, spacing)))
     _box_points(box_c, box_s, spacing, boxes, 0)
     lo_i = np.full(3, 2**30, np.int32)
@@ -397,7 +401,7 @@ def _sweep_thin(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s,
     _turn_bounds(samples, S, axis, origin, scale2, off2, lo_i, hi_i)
     _point_bounds(boxes, boxes.shape[1], scale2, off2, lo_i, hi_i)
     if hi_i[0] < lo_i[0]:
-        return boxes[:, :0].copy()
+        return boxes, 0
     d0, d1, d2 = hi_i[0] - lo_i[0] + 1, hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
     if np.int64(d0) * d1 * d2 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
@@ -431,18 +435,21 @@ def _sweep_thin(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s,
         _axis_angle(axis, end, R)
         _turn_cells_into(R, j, origin, samples, 0, S, scale2, off2, lo_i, d1, d2, buf, cell)
         K = _keep_new(buf, S, cell, bits, out, kept, K)
-    return _in_cell_order(out, kept, K, bits)
+    if ordered:
+        return _in_cell_order(out, kept, K, bits), K
+    return out, K
 
 
 @njit(cache=True)
-def _surface(samples, scale2, off2):
-    """One sample per surface voxel (3, B) of the thinned samples (3, S), in C order of the voxels:
-    a voxel's last sample (its samples are in C order of their half-voxels), a surface voxel an
+def _surface(samples, S, scale2, off2):
+    """One sample per surface voxel (3, B) of the thinned samples samples[:, :S] (one per
+    half-voxel, in any order), in C order of the voxels: a voxel's sample in its last half-voxel
+    in C order (volume._thin's choice, whose samples are in that order), a surface voxel an
     occupied one with an empty face neighbour (volume._thin's boundary)."""
-    S = samples.shape[1]
     if S == 0:
         return samples[:, :0].copy()
     vox = np.empty((3, S), np.int32)
+    sub = np.zeros(S, np.int32)
     lo = np.empty(3, np.int32)
     hi = np.empty(3, np.int32)
     for d in range(3):
@@ -450,7 +457,9 @@ def _surface(samples, scale2, off2):
         row = samples[d]
         v = vox[d]
         for i in range(S):
-            v[i] = np.int32(np.floor(row[i] * scale2 - f)) >> 1     # the half-voxel's voxel
+            h = np.int32(np.floor(row[i] * scale2 - f))
+            v[i] = h >> 1                                   # the half-voxel's voxel
+            sub[i] = (sub[i] << 1) | (h & 1)                # its place in the voxel, C order
         a, b = v[0], v[0]
         for i in range(S):
             a, b = min(a, v[i]), max(b, v[i])
@@ -459,16 +468,24 @@ def _surface(samples, scale2, off2):
     W = (hi[2] - lo[2]) // 64 + 1        # rows padded to whole words
     if np.int64(e0) * e1 * W * 64 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
+    if S >= 2**27:
+        raise ValueError("more than 2**27 samples: raise [criteria].voxel_m")
     bits = np.zeros(e0 * e1 * W, np.uint64)
-    last = np.empty(e0 * e1 * W * 64, np.int32)     # read only where bits are set
-    for i in range(S):     # the last write wins: the voxel's last sample
-        c = ((vox[0, i] - lo[0]) * e1 + (vox[1, i] - lo[1])) * (64 * W) + (vox[2, i] - lo[2])
-        _set_bit(bits, c)
-        last[c] = i
-    row = e1 * W
-    zero = np.uint64(0)
+    # Per voxel, its sample's place in the voxel (high bits) and index (low 27 bits), the
+    # greatest place kept; read only where bits are set.
+    best = np.empty(e0 * e1 * W * 64, np.int32)
     one = np.uint64(1)
+    zero = np.uint64(0)
+    for i in range(S):
+        c = ((vox[0, i] - lo[0]) * e1 + (vox[1, i] - lo[1])) * (64 * W) + (vox[2, i] - lo[2])
+        key = (sub[i] << 27) | i
+        word = bits[c >> 6]
+        bit = one << np.uint64(c & 63)
+        bits[c >> 6] = word | bit
+        best[c] = key if (word & bit) == zero else max(best[c], key)
+    row = e1 * W
     s63 = np.uint64(63)
+    low = (1 << 27) - 1
     count = 0
     out = np.empty((3, S))
     for a in range(1, e0 - 1):
@@ -485,7 +502,7 @@ def _surface(samples, scale2, off2):
                          & ((occ << one) | before) & ((occ >> one) | after))
                 surf = occ & ~inner
                 while surf != zero:
-                    i = last[k * 64 + int(trailing_zeros(surf))]
+                    i = best[k * 64 + int(trailing_zeros(surf))] & low
                     surf &= surf - one
                     out[0, count] = samples[0, i]
                     out[1, count] = samples[1, i]
@@ -495,15 +512,15 @@ def _surface(samples, scale2, off2):
 
 
 @njit(cache=True)
-def _count_final(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale1, off1):
-    """Voxels (mount lattice) holding a point of the last sweep or of the mount's boxes.
+def _count_final(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale1, off1):
+    """Voxels (mount lattice) holding a point of the last sweep (of the samples samples[:, :S]
+    and the boundary samples (3, B)) or of the mount's boxes.
 
     The points are marked as they are made, never stored: the lattice box is bounded in
     advance by the cylinder about the joint axis that holds every turned point (padded by a
     voxel against rounding), which changes the array, not the count.
     """
     members, start, counts = _sweep_plan(boundary, axis, lo, hi, max_step)
-    S = samples.shape[1]
     boxes = np.empty((3, _box_count(box_s, spacing)))
     _box_points(box_c, box_s, spacing, boxes, 0)
     # Bound of the turned points: axial coordinate kept, radius kept.
@@ -529,8 +546,8 @@ def _count_final(samples, boundary, axis, origin, lo, hi, max_step, box_c, box_s
     fixed_s = np.empty(S, np.int32)
     fixed_m = np.empty(members.shape[1], np.int32)
     if j >= 0:
-        _fixed_cells(samples, j, origin, scale1, off1, lo_i, d1, d2, fixed_s)
-        _fixed_cells(members, j, origin, scale1, off1, lo_i, d1, d2, fixed_m)
+        _fixed_cells(samples, S, j, origin, scale1, off1, lo_i, d1, d2, fixed_s)
+        _fixed_cells(members, members.shape[1], j, origin, scale1, off1, lo_i, d1, d2, fixed_m)
     for end in (lo, hi):
         _axis_angle(axis, end, R)
         if j >= 0:
@@ -575,10 +592,12 @@ def swept_voxels(link_c, link_s, joint_axis, joint_origin, joint_lo, joint_hi, v
     pts = np.empty((3, _box_count(link_s[3], half)))
     _box_points(link_c[3], link_s[3], half, pts, 0)
     samples = _thin_points(pts, scale2, off2)
+    S = samples.shape[1]
     for k in (2, 1):
-        samples = _sweep_thin(samples, _surface(samples, scale2, off2), joint_axis[k], joint_origin[k], joint_lo[k],
-                              joint_hi[k], half, link_c[k], link_s[k], half, scale2, off2)
-    return _count_final(samples, _surface(samples, scale2, off2), joint_axis[0], joint_origin[0], joint_lo[0],
+        # The pan sweep's points (k = 1) are only counted and surfaced, which needs no order.
+        samples, S = _sweep_thin(samples, S, _surface(samples, S, scale2, off2), joint_axis[k], joint_origin[k],
+                                 joint_lo[k], joint_hi[k], half, link_c[k], link_s[k], half, scale2, off2, k == 2)
+    return _count_final(samples, S, _surface(samples, S, scale2, off2), joint_axis[0], joint_origin[0], joint_lo[0],
                         joint_hi[0], FINAL_STEP * voxel_m, link_c[0], link_s[0], half, 1 / voxel_m, 1 * offset)
 
 
