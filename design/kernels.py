@@ -143,18 +143,28 @@ def _rank(bits, ranks, c):
     return ranks[c >> 6] + int(_ctpop(below))
 
 
+@njit(cache=True, inline="always")
+def _strides(lo, d1, d2):
+    """A lattice box's C-order strides (d1 * d2, d2, 1) and the cell of its corner ``lo``, as
+    floats: a cell computed from floored coordinates in float64 is exact (integers below 2**53),
+    and float multiplies vectorise where int64 ones (no AVX2 instruction) do not."""
+    s0, s1 = float(d1 * d2), float(d2)
+    return s0, s1, lo[0] * s0 + lo[1] * s1 + lo[2]
+
+
 @njit(cache=True)
 def _cells(P, i0, i1, scale, off, lo, d1, d2, out):
     """out[:i1 - i0] = C-order lattice cell of points P[:, i0:i1] (3, N), cells of edge 1 / scale
-    offset by ``off`` cells, relative to the box corner ``lo``. A loop the compiler vectorises."""
+    offset by ``off`` cells, relative to the box corner ``lo``. A loop the compiler vectorises
+    (0-based over contiguous slices: indexing from i0 keeps it scalar)."""
     f0, f1, f2 = off[0], off[1], off[2]
-    l0, l1, l2 = lo[0], lo[1], lo[2]
-    X, Y, Z = P[0], P[1], P[2]
-    for i in range(i0, i1):
-        a = np.int32(np.floor(X[i] * scale - f0)) - l0
-        b = np.int32(np.floor(Y[i] * scale - f1)) - l1
-        c = np.int32(np.floor(Z[i] * scale - f2)) - l2
-        out[i - i0] = (a * d1 + b) * d2 + c
+    s0, s1, base = _strides(lo, d1, d2)
+    X, Y, Z = P[0, i0:i1], P[1, i0:i1], P[2, i0:i1]
+    for i in range(i1 - i0):
+        a = np.floor(X[i] * scale - f0)
+        b = np.floor(Y[i] * scale - f1)
+        c = np.floor(Z[i] * scale - f2)
+        out[i] = np.int32(((a * s0 + b * s1) + c) - base)
 
 
 @njit(cache=True)
@@ -164,14 +174,14 @@ def _turned_cells(R, origin, P, i0, i1, scale, off, lo, d1, d2, out):
                                                    R[2, 0], R[2, 1], R[2, 2])
     o0, o1, o2 = origin[0], origin[1], origin[2]
     f0, f1, f2 = off[0], off[1], off[2]
-    l0, l1, l2 = lo[0], lo[1], lo[2]
-    X, Y, Z = P[0], P[1], P[2]
-    for i in range(i0, i1):
+    s0, s1, base = _strides(lo, d1, d2)
+    X, Y, Z = P[0, i0:i1], P[1, i0:i1], P[2, i0:i1]
+    for i in range(i1 - i0):
         x, y, z = X[i], Y[i], Z[i]
-        a = np.int32(np.floor((((r00 * x + r01 * y) + r02 * z) + o0) * scale - f0)) - l0
-        b = np.int32(np.floor((((r10 * x + r11 * y) + r12 * z) + o1) * scale - f1)) - l1
-        c = np.int32(np.floor((((r20 * x + r21 * y) + r22 * z) + o2) * scale - f2)) - l2
-        out[i - i0] = (a * d1 + b) * d2 + c
+        a = np.floor((((r00 * x + r01 * y) + r02 * z) + o0) * scale - f0)
+        b = np.floor((((r10 * x + r11 * y) + r12 * z) + o1) * scale - f1)
+        c = np.floor((((r20 * x + r21 * y) + r22 * z) + o2) * scale - f2)
+        out[i] = np.int32(((a * s0 + b * s1) + c) - base)
 
 
 @njit(cache=True)
@@ -198,18 +208,18 @@ def _turned_cells_aligned(R, j, origin, P, fixed, i0, i1, scale, off, lo, d1, d2
     same cells (R's row j is e_j, its column j zeros, so each other coordinate is the same two
     products summed in the same order)."""
     u, w = (1, 2) if j == 0 else ((0, 2) if j == 1 else (0, 1))
-    su = d1 * d2 if u == 0 else d2
-    sw = d2 if w == 1 else 1
+    su = float(d1 * d2) if u == 0 else float(d2)
+    sw = float(d2) if w == 1 else 1.0
     ruu, ruw, rwu, rww = R[u, u], R[u, w], R[w, u], R[w, w]
     ou, ow = origin[u], origin[w]
     fu, fw = off[u], off[w]
-    lu, lw = lo[u], lo[w]
-    U, V = P[u], P[w]
-    for i in range(i0, i1):
+    base = lo[u] * su + lo[w] * sw
+    U, V, F = P[u, i0:i1], P[w, i0:i1], fixed[i0:i1]
+    for i in range(i1 - i0):
         x, y = U[i], V[i]
-        a = np.int32(np.floor(((ruu * x + ruw * y) + ou) * scale - fu)) - lu
-        c = np.int32(np.floor(((rwu * x + rww * y) + ow) * scale - fw)) - lw
-        out[i - i0] = a * su + c * sw + fixed[i]
+        a = np.floor(((ruu * x + ruw * y) + ou) * scale - fu)
+        c = np.floor(((rwu * x + rww * y) + ow) * scale - fw)
+        out[i] = np.int32((a * su + c * sw) - base) + F[i]
 
 
 @njit(cache=True)
@@ -221,10 +231,10 @@ def _turn_cells_into(R, j, origin, P, i0, i1, scale, off, lo, d1, d2, buf, cell)
                                                    R[2, 0], R[2, 1], R[2, 2])
     o0, o1, o2 = origin[0], origin[1], origin[2]
     f0, f1, f2 = off[0], off[1], off[2]
-    l0, l1, l2 = lo[0], lo[1], lo[2]
-    X, Y, Z = P[0], P[1], P[2]
+    s0, s1, base = _strides(lo, d1, d2)
+    X, Y, Z = P[0, i0:i1], P[1, i0:i1], P[2, i0:i1]
     B0, B1, B2 = buf[0], buf[1], buf[2]
-    for i in range(i0, i1):
+    for i in range(i1 - i0):
         x, y, z = X[i], Y[i], Z[i]
         if j == 0:
             u, v, w = x + o0, (r11 * y + r12 * z) + o1, (r21 * y + r22 * z) + o2
@@ -234,11 +244,11 @@ def _turn_cells_into(R, j, origin, P, i0, i1, scale, off, lo, d1, d2, buf, cell)
             u, v, w = (r00 * x + r01 * y) + o0, (r10 * x + r11 * y) + o1, z + o2
         else:
             u, v, w = ((r00 * x + r01 * y) + r02 * z) + o0, ((r10 * x + r11 * y) + r12 * z) + o1, ((r20 * x + r21 * y) + r22 * z) + o2
-        B0[i - i0], B1[i - i0], B2[i - i0] = u, v, w
-        a = np.int32(np.floor(u * scale - f0)) - l0
-        b = np.int32(np.floor(v * scale - f1)) - l1
-        c = np.int32(np.floor(w * scale - f2)) - l2
-        cell[i - i0] = (a * d1 + b) * d2 + c
+        B0[i], B1[i], B2[i] = u, v, w
+        a = np.floor(u * scale - f0)
+        b = np.floor(v * scale - f1)
+        c = np.floor(w * scale - f2)
+        cell[i] = np.int32(((a * s0 + b * s1) + c) - base)
 
 
 @njit(cache=True)
