@@ -458,46 +458,37 @@ def _surface(samples, S, scale2, off2):
     occupied one with an empty face neighbour (volume._thin's boundary)."""
     if S == 0:
         return samples[:, :0].copy()
-    vox = np.empty((3, S), np.int32)
-    sub = np.zeros(S, np.int32)
+    if S >= 2**27:
+        raise ValueError("more than 2**27 samples: raise [criteria].voxel_m")
+    h = np.empty((3, S), np.int32)
     lo = np.empty(3, np.int32)
     hi = np.empty(3, np.int32)
     for d in range(3):
         f = off2[d]
-        row = samples[d]
-        v = vox[d]
+        row = samples[d, :S]
+        hd = h[d]
         for i in range(S):
-            h = np.int32(np.floor(row[i] * scale2 - f))
-            v[i] = h >> 1                                   # the half-voxel's voxel
-            sub[i] = (sub[i] << 1) | (h & 1)                # its place in the voxel, C order
-        a, b = v[0], v[0]
+            hd[i] = np.int32(np.floor(row[i] * scale2 - f))      # half-voxel index
+        a, b = hd[0], hd[0]
         for i in range(S):
-            a, b = min(a, v[i]), max(b, v[i])
-        lo[d], hi[d] = a - 1, b + 1      # an empty border: every neighbour is in the box
+            a, b = min(a, hd[i]), max(b, hd[i])
+        lo[d], hi[d] = (a >> 1) - 1, (b >> 1) + 1      # voxels, with an empty border
     e0, e1 = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
     W = (hi[2] - lo[2]) // 64 + 1        # rows padded to whole words
     if np.int64(e0) * e1 * W * 64 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
-    if S >= 2**27:
-        raise ValueError("more than 2**27 samples: raise [criteria].voxel_m")
     bits = np.zeros(e0 * e1 * W, np.uint64)
-    # Per voxel, its sample's place in the voxel (high bits) and index (low 27 bits), the
-    # greatest place kept; read only where bits are set.
-    best = np.empty(e0 * e1 * W * 64, np.int32)
-    one = np.uint64(1)
-    zero = np.uint64(0)
+    cell = np.empty(S, np.int32)
     for i in range(S):
-        c = ((vox[0, i] - lo[0]) * e1 + (vox[1, i] - lo[1])) * (64 * W) + (vox[2, i] - lo[2])
-        key = (sub[i] << 27) | i
-        word = bits[c >> 6]
-        bit = one << np.uint64(c & 63)
-        bits[c >> 6] = word | bit
-        best[c] = key if (word & bit) == zero else max(best[c], key)
+        c = (((h[0, i] >> 1) - lo[0]) * e1 + ((h[1, i] >> 1) - lo[1])) * (64 * W) + ((h[2, i] >> 1) - lo[2])
+        cell[i] = c
+        _set_bit(bits, c)
+    # Surface voxels by word-wide bit operations: interior if it and its six neighbours are set.
+    surf = np.zeros_like(bits)
     row = e1 * W
+    zero = np.uint64(0)
+    one = np.uint64(1)
     s63 = np.uint64(63)
-    low = (1 << 27) - 1
-    count = 0
-    out = np.empty((3, S))
     for a in range(1, e0 - 1):
         for b in range(1, e1 - 1):
             base = (a * e1 + b) * W
@@ -510,15 +501,27 @@ def _surface(samples, S, scale2, off2):
                 after = bits[k + 1] << s63 if w < W - 1 else zero
                 inner = (occ & bits[k - row] & bits[k + row] & bits[k - W] & bits[k + W]
                          & ((occ << one) | before) & ((occ >> one) | after))
-                surf = occ & ~inner
-                while surf != zero:
-                    i = best[k * 64 + int(trailing_zeros(surf))] & low
-                    surf &= surf - one
-                    out[0, count] = samples[0, i]
-                    out[1, count] = samples[1, i]
-                    out[2, count] = samples[2, i]
-                    count += 1
-    return out[:, :count]
+                surf[k] = occ & ~inner
+    # Each surface voxel's sample, by the voxel's rank among them (so in C order): the one whose
+    # place in the voxel (bits x, y, z of its half-voxel) is greatest, the place in the key's
+    # high bits, the index in its low 27.
+    ranks = _ranks(surf)
+    B = ranks[-1]
+    best = np.full(B, -1, np.int32)
+    for i in range(S):
+        c = cell[i]
+        if surf[c >> 6] & (one << np.uint64(c & 63)):
+            r = _rank(surf, ranks, c)
+            key = ((((h[0, i] & 1) << 2) | ((h[1, i] & 1) << 1) | (h[2, i] & 1)) << 27) | i
+            best[r] = max(best[r], key)
+    out = np.empty((3, B))
+    low = (1 << 27) - 1
+    for r in range(B):
+        i = best[r] & low
+        out[0, r] = samples[0, i]
+        out[1, r] = samples[1, i]
+        out[2, r] = samples[2, i]
+    return out
 
 
 @njit(cache=True)
