@@ -551,7 +551,8 @@ def _count_final(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, bo
     d1, d2 = hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
     if (hi_i[0] - lo_i[0] + 1) * d1 * d2 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
-    occ = np.zeros(((hi_i[0] - lo_i[0] + 1) * d1 * d2) // 64 + 1, np.uint64)
+    # A byte per voxel: a plain store per point, where a bit costs a load, a shift and an OR.
+    occ = np.zeros((hi_i[0] - lo_i[0] + 1) * d1 * d2, np.uint8)
     R = np.empty((3, 3))
     cell = np.empty(max(S, boundary.shape[1], boxes.shape[1]), np.int32)
     ang = np.empty(int(counts.max()) + 2)
@@ -568,7 +569,7 @@ def _count_final(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, bo
         else:
             _turned_cells(R, origin, samples, 0, S, scale1, off1, lo_i, d1, d2, cell)
         for i in range(S):
-            _set_bit(occ, cell[i])
+            occ[cell[i]] = 1
     for b in range(RADIUS_BANDS):
         n = counts[b]
         m = start[b + 1] - start[b]
@@ -582,11 +583,14 @@ def _count_final(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, bo
                 else:
                     _turned_cells(R, origin, members, start[b], start[b + 1], scale1, off1, lo_i, d1, d2, cell)
                 for i in range(m):
-                    _set_bit(occ, cell[i])
+                    occ[cell[i]] = 1
     _cells(boxes, 0, boxes.shape[1], scale1, off1, lo_i, d1, d2, cell)
     for i in range(boxes.shape[1]):
-        _set_bit(occ, cell[i])
-    return _popcount(occ)
+        occ[cell[i]] = 1
+    n = 0
+    for v in occ:
+        n += v
+    return n
 
 
 @njit(cache=True)
