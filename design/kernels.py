@@ -399,7 +399,8 @@ def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box
     """volume._thin of volume._sweep's points and the parent's boxes, parent frame: the samples
     samples[:, :S] turned to both ends of the joint's range, the boundary samples (3, B) to the
     angles between, the boxes, thinned as they are made (one rotation's points in memory at a
-    time, no sort). Returns (P, K): the kept points are P[:, :K], one per half-voxel, in C order
+    time, no sort). Returns (P, K, lo_i, hi_i): the kept points are P[:, :K], inside the box
+    of half-voxel cells [lo_i, hi_i] (3,) each, one per half-voxel, in C order
     of their half-voxels if ``ordered`` (as volume._thin has them; a sweep that thins them again
     needs that order), else in the order kept (enough for _surface and _count_final, which do
     not depend on it)."""
@@ -411,7 +412,7 @@ def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box
     _turn_bounds(samples, S, axis, origin, scale2, off2, lo_i, hi_i)
     _point_bounds(boxes, boxes.shape[1], scale2, off2, lo_i, hi_i)
     if hi_i[0] < lo_i[0]:
-        return boxes, 0
+        return boxes, 0, lo_i, hi_i
     d0, d1, d2 = hi_i[0] - lo_i[0] + 1, hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
     if np.int64(d0) * d1 * d2 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
@@ -446,8 +447,8 @@ def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box
         _turn_cells_into(R, j, origin, samples, 0, S, scale2, off2, lo_i, d1, d2, buf, cell)
         K = _keep_new(buf, S, cell, bits, out, kept, K)
     if ordered:
-        return _in_cell_order(out, kept, K, bits), K
-    return out, K
+        return _in_cell_order(out, kept, K, bits), K, lo_i, hi_i
+    return out, K, lo_i, hi_i
 
 
 @njit(cache=True)
@@ -525,19 +526,26 @@ def _surface(samples, S, scale2, off2):
 
 
 @njit(cache=True)
-def _count_final(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale1, off1):
-    """Voxels (mount lattice) holding a point of the last sweep (of the samples samples[:, :S]
-    and the boundary samples (3, B)) or of the mount's boxes.
+def _count_final(samples, S, x0, x1, boundary, axis, origin, lo, hi, max_step, box_c, box_s, spacing, scale1,
+                 off1):
+    """Voxels (mount lattice) holding a point of the last sweep (of the samples samples[:, :S],
+    which lie in the box [x0, x1] (3,) each, metres, and of the boundary samples (3, B)) or of
+    the mount's boxes.
 
     The points are marked as they are made, never stored: the lattice box is bounded in
-    advance by the cylinder about the joint axis that holds every turned point (padded by a
-    voxel against rounding), which changes the array, not the count.
+    advance by the cylinder about the joint axis that holds every turn of the box [x0, x1]
+    (padded by a voxel against rounding), which changes the array, not the count.
     """
     members, start, counts = _sweep_plan(boundary, axis, lo, hi, max_step)
     boxes = np.empty((3, _box_count(box_s, spacing)))
     _box_points(box_c, box_s, spacing, boxes, 0)
-    # Bound of the turned points: axial coordinate kept, radius kept.
-    a_min, a_max, rr = _turn_extent(samples, S, axis)
+    # Bound of the turned points: axial coordinate kept, radius kept; a box's farthest point
+    # from a line and its extremes along it are corners, so its 8 corners bound every sample.
+    corners = np.empty((3, 8))
+    for k in range(8):
+        for d in range(3):
+            corners[d, k] = x1[d] if (k >> d) & 1 else x0[d]
+    a_min, a_max, rr = _turn_extent(corners, 8, axis)
     lo_i = np.empty(3, np.int32)
     hi_i = np.empty(3, np.int32)
     for d in range(3):
@@ -610,12 +618,18 @@ def swept_voxels(link_c, link_s, joint_axis, joint_origin, joint_lo, joint_hi, v
     _box_points(link_c[3], link_s[3], half, pts, 0)
     samples = _thin_points(pts, scale2, off2)
     S = samples.shape[1]
+    lo_i = hi_i = np.zeros(3, np.int32)
     for k in (2, 1):
         # The pan sweep's points (k = 1) are only counted and surfaced, which needs no order.
-        samples, S = _sweep_thin(samples, S, _surface(samples, S, scale2, off2), joint_axis[k], joint_origin[k],
-                                 joint_lo[k], joint_hi[k], half, link_c[k], link_s[k], half, scale2, off2, k == 2)
-    return _count_final(samples, S, _surface(samples, S, scale2, off2), joint_axis[0], joint_origin[0], joint_lo[0],
-                        joint_hi[0], FINAL_STEP * voxel_m, link_c[0], link_s[0], half, 1 / voxel_m, 1 * offset)
+        samples, S, lo_i, hi_i = _sweep_thin(samples, S, _surface(samples, S, scale2, off2), joint_axis[k],
+                                             joint_origin[k], joint_lo[k], joint_hi[k], half, link_c[k], link_s[k],
+                                             half, scale2, off2, k == 2)
+    # The pan sweep's lattice box (its cells padded by one each way) in metres: the samples' bound.
+    x0 = (lo_i + off2) / scale2
+    x1 = (hi_i + 1 + off2) / scale2
+    return _count_final(samples, S, x0, x1, _surface(samples, S, scale2, off2), joint_axis[0], joint_origin[0],
+                        joint_lo[0], joint_hi[0], FINAL_STEP * voxel_m, link_c[0], link_s[0], half, 1 / voxel_m,
+                        1 * offset)
 
 
 # --------------------------------------------------------------------------------------------
