@@ -85,3 +85,45 @@ def test_layout_arrays_are_the_heads(ctx, designs):
         np.testing.assert_array_equal(A.origin[d], B.origin[0])
         np.testing.assert_array_equal(A.cam[d], B.cam[0])
         np.testing.assert_array_equal(A.lo, B.lo)
+
+
+def test_surface_picks_the_c_order_sample_from_samples_in_any_order():
+    # The pan sweep hands _surface its points in the order kept; the sample it keeps per surface
+    # voxel must still be volume._thin's (the last in C order of the half-voxels).
+    from design import kernels
+    from design.volume import LATTICE_OFFSET, _thin
+
+    rng = np.random.default_rng(5)
+    P = rng.normal(size=(3, 30000))
+    P *= 0.03 * rng.uniform(size=30000) ** (1 / 3) / np.linalg.norm(P, axis=0)     # a 3 cm ball
+    voxel = 0.003
+    samples, boundary = _thin(P, voxel)
+    shuffled = np.ascontiguousarray(samples[:, rng.permutation(samples.shape[1])])
+    got = kernels._surface(shuffled, shuffled.shape[1], 2 / voxel, 2 * LATTICE_OFFSET)
+    assert 100 < boundary.shape[1] < samples.shape[1] / 4
+    np.testing.assert_array_equal(got, boundary)
+
+
+def test_unordered_sweep_keeps_the_same_points(ctx):
+    from design import kernels
+    from design.volume import LATTICE_OFFSET
+
+    X = np.random.default_rng(7).uniform(ctx.spec.xl, ctx.spec.xu, (1, 12))
+    A = arrays_from_variables(X, ctx.spec)
+    c, s = A.center[0], A.size[0]
+    link_c = [np.ascontiguousarray(c[A.link == k]) for k in range(4)]
+    link_s = [np.ascontiguousarray(s[A.link == k]) for k in range(4)]
+    half, scale2, off2 = ctx.spec.voxel_m / 2, 2 / ctx.spec.voxel_m, 2 * LATTICE_OFFSET
+    pts = np.empty((3, kernels._box_count(link_s[3], half)))
+    kernels._box_points(link_c[3], link_s[3], half, pts, 0)
+    samples = kernels._thin_points(pts, scale2, off2)
+    boundary = kernels._surface(samples, samples.shape[1], scale2, off2)
+    args = (boundary, A.axis[2], A.origin[0, 2], A.lo[2], A.hi[2], half, link_c[2], link_s[2], half, scale2, off2)
+    ordered, n, lo, hi = kernels._sweep_thin(samples, samples.shape[1], *args, True)
+    kept, m, lo2, hi2 = kernels._sweep_thin(samples, samples.shape[1], *args, False)
+    assert n == m > samples.shape[1]
+    np.testing.assert_array_equal(lo, lo2)
+    np.testing.assert_array_equal(hi, hi2)
+    key = lambda Q: Q[:, np.lexsort(Q[::-1])]
+    assert not np.array_equal(ordered[:, :n], kept[:, :n])        # the order differs ...
+    np.testing.assert_array_equal(key(ordered[:, :n]), key(kept[:, :n]))    # ... the points do not
