@@ -342,11 +342,12 @@ def _band_angles(counts, b, lo, hi, ang):
 
 @njit(cache=True)
 def _keep_new(buf, m, cell, bits, out, kept, K):
-    """Append to out[:, K:] (their cells to kept[K:]) the points buf[:, :m] whose half-voxel is
-    not yet marked, marking it, taken last to first: each half-voxel keeps the last point made in
-    it, as volume._thin keeps it. Returns the new K."""
+    """Append to out[:, K:] (their cells to kept[K:], unless kept is empty) the points buf[:, :m]
+    whose half-voxel is not yet marked, marking it, taken last to first: each half-voxel keeps
+    the last point made in it, as volume._thin keeps it. Returns the new K."""
     # Branch-free: every point is written at K, which moves on only for a new cell.
     one = np.uint64(1)
+    record = kept.size > 0
     for i in range(m - 1, -1, -1):
         c = cell[i]
         word = bits[c >> 6]
@@ -355,7 +356,8 @@ def _keep_new(buf, m, cell, bits, out, kept, K):
         out[0, K] = buf[0, i]
         out[1, K] = buf[1, i]
         out[2, K] = buf[2, i]
-        kept[K] = c
+        if record:
+            kept[K] = c
         K += int((word & bit) == np.uint64(0))
     return K
 
@@ -423,7 +425,7 @@ def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box
     total = min(total, d0 * d1 * d2 + 1)    # + 1: the branch-free keep writes one past the kept points
     bits = np.zeros((d0 * d1 * d2) // 64 + 1, np.uint64)
     out = np.empty((3, total))
-    kept = np.empty(total, np.int32)
+    kept = np.empty(total if ordered else 0, np.int32)     # the cells, for putting them in order
     m_max = max(S, boundary.shape[1], boxes.shape[1])
     buf = np.empty((3, m_max))
     cell = np.empty(m_max, np.int32)
