@@ -378,13 +378,14 @@ def _in_cell_order(out, kept, K, bits):
 @njit(cache=True)
 def _thin_points(P, scale2, off2):
     """One exact point per occupied half-voxel of the points P (3, M), the last made in it, in C
-    order of the half-voxels (volume._thin's samples)."""
+    order of the half-voxels (volume._thin's samples), and the box of half-voxel cells
+    [lo_i, hi_i] (3,) each that holds them."""
     lo_i = np.full(3, 2**30, np.int32)
     hi_i = np.full(3, -2**30, np.int32)
     M = P.shape[1]
     _point_bounds(P, M, scale2, off2, lo_i, hi_i)
     if M == 0:
-        return P[:, :0].copy()
+        return P[:, :0].copy(), lo_i, hi_i
     d1, d2 = hi_i[1] - lo_i[1] + 1, hi_i[2] - lo_i[2] + 1
     bits = np.zeros(((hi_i[0] - lo_i[0] + 1) * d1 * d2) // 64 + 1, np.uint64)
     cell = np.empty(M, np.int32)
@@ -392,7 +393,7 @@ def _thin_points(P, scale2, off2):
     out = np.empty((3, M))
     kept = np.empty(M, np.int32)
     K = _keep_new(P, M, cell, bits, out, kept, 0)
-    return _in_cell_order(out, kept, K, bits)
+    return _in_cell_order(out, kept, K, bits), lo_i, hi_i
 
 
 @njit(cache=True)
@@ -454,38 +455,38 @@ def _sweep_thin(samples, S, boundary, axis, origin, lo, hi, max_step, box_c, box
 
 
 @njit(cache=True)
-def _surface(samples, S, scale2, off2):
+def _surface(samples, S, lo_h, hi_h, scale2, off2):
     """One sample per surface voxel (3, B) of the thinned samples samples[:, :S] (one per
-    half-voxel, in any order), in C order of the voxels: a voxel's sample in its last half-voxel
-    in C order (volume._thin's choice, whose samples are in that order), a surface voxel an
-    occupied one with an empty face neighbour (volume._thin's boundary)."""
+    half-voxel, in any order, all in the box of half-voxel cells [lo_h, hi_h] (3,) each), in C
+    order of the voxels: a voxel's sample in its last half-voxel in C order (volume._thin's
+    choice, whose samples are in that order), a surface voxel an occupied one with an empty
+    face neighbour (volume._thin's boundary)."""
     if S == 0:
         return samples[:, :0].copy()
     if S >= 2**27:
         raise ValueError("more than 2**27 samples: raise [criteria].voxel_m")
-    h = np.empty((3, S), np.int32)
-    lo = np.empty(3, np.int32)
-    hi = np.empty(3, np.int32)
-    for d in range(3):
-        f = off2[d]
-        row = samples[d, :S]
-        hd = h[d]
-        for i in range(S):
-            hd[i] = np.int32(np.floor(row[i] * scale2 - f))      # half-voxel index
-        a, b = hd[0], hd[0]
-        for i in range(S):
-            a, b = min(a, hd[i]), max(b, hd[i])
-        lo[d], hi[d] = (a >> 1) - 1, (b >> 1) + 1      # voxels, with an empty border
+    lo = (lo_h >> 1) - 1          # voxels, with an empty border: every neighbour is in the box
+    hi = (hi_h >> 1) + 1
     e0, e1 = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
     W = (hi[2] - lo[2]) // 64 + 1        # rows padded to whole words
     if np.int64(e0) * e1 * W * 64 >= 2**31:
         raise ValueError("the voxel lattice exceeds 2**31 cells: raise [criteria].voxel_m")
-    bits = np.zeros(e0 * e1 * W, np.uint64)
+    # Each sample's voxel cell and place in the voxel (bits x, y, z of its half-voxel index), in
+    # float so the loop vectorises: floor(h / 2) is the voxel, h - 2 floor(h / 2) the bit, exact.
     cell = np.empty(S, np.int32)
+    place = np.empty(S, np.int32)
+    s0, s1 = float(e1 * 64 * W), float(64 * W)
+    base = lo[0] * s0 + lo[1] * s1 + lo[2]
+    f0, f1, f2 = off2[0], off2[1], off2[2]
+    X, Y, Z = samples[0, :S], samples[1, :S], samples[2, :S]
     for i in range(S):
-        c = (((h[0, i] >> 1) - lo[0]) * e1 + ((h[1, i] >> 1) - lo[1])) * (64 * W) + ((h[2, i] >> 1) - lo[2])
-        cell[i] = c
-        _set_bit(bits, c)
+        hx, hy, hz = np.floor(X[i] * scale2 - f0), np.floor(Y[i] * scale2 - f1), np.floor(Z[i] * scale2 - f2)
+        vx, vy, vz = np.floor(hx * 0.5), np.floor(hy * 0.5), np.floor(hz * 0.5)
+        cell[i] = np.int32(((vx * s0 + vy * s1) + vz) - base)
+        place[i] = np.int32(((hx - 2.0 * vx) * 4.0 + (hy - 2.0 * vy) * 2.0) + (hz - 2.0 * vz))
+    bits = np.zeros(e0 * e1 * W, np.uint64)
+    for i in range(S):
+        _set_bit(bits, cell[i])
     # Surface voxels by word-wide bit operations: interior if it and its six neighbours are set.
     surf = np.zeros_like(bits)
     row = e1 * W
@@ -515,7 +516,7 @@ def _surface(samples, S, scale2, off2):
         c = cell[i]
         if surf[c >> 6] & (one << np.uint64(c & 63)):
             r = _rank(surf, ranks, c)
-            key = ((((h[0, i] & 1) << 2) | ((h[1, i] & 1) << 1) | (h[2, i] & 1)) << 27) | i
+            key = (place[i] << 27) | i
             best[r] = max(best[r], key)
     out = np.empty((3, B))
     low = (1 << 27) - 1
@@ -618,20 +619,19 @@ def swept_voxels(link_c, link_s, joint_axis, joint_origin, joint_lo, joint_hi, v
     off2 = 2 * offset
     pts = np.empty((3, _box_count(link_s[3], half)))
     _box_points(link_c[3], link_s[3], half, pts, 0)
-    samples = _thin_points(pts, scale2, off2)
+    samples, lo_i, hi_i = _thin_points(pts, scale2, off2)
     S = samples.shape[1]
-    lo_i = hi_i = np.zeros(3, np.int32)
     for k in (2, 1):
         # The pan sweep's points (k = 1) are only counted and surfaced, which needs no order.
-        samples, S, lo_i, hi_i = _sweep_thin(samples, S, _surface(samples, S, scale2, off2), joint_axis[k],
-                                             joint_origin[k], joint_lo[k], joint_hi[k], half, link_c[k], link_s[k],
-                                             half, scale2, off2, k == 2)
+        boundary = _surface(samples, S, lo_i, hi_i, scale2, off2)
+        samples, S, lo_i, hi_i = _sweep_thin(samples, S, boundary, joint_axis[k], joint_origin[k], joint_lo[k],
+                                             joint_hi[k], half, link_c[k], link_s[k], half, scale2, off2, k == 2)
     # The pan sweep's lattice box (its cells padded by one each way) in metres: the samples' bound.
     x0 = (lo_i + off2) / scale2
     x1 = (hi_i + 1 + off2) / scale2
-    return _count_final(samples, S, x0, x1, _surface(samples, S, scale2, off2), joint_axis[0], joint_origin[0],
-                        joint_lo[0], joint_hi[0], FINAL_STEP * voxel_m, link_c[0], link_s[0], half, 1 / voxel_m,
-                        1 * offset)
+    boundary = _surface(samples, S, lo_i, hi_i, scale2, off2)
+    return _count_final(samples, S, x0, x1, boundary, joint_axis[0], joint_origin[0], joint_lo[0], joint_hi[0],
+                        FINAL_STEP * voxel_m, link_c[0], link_s[0], half, 1 / voxel_m, 1 * offset)
 
 
 # --------------------------------------------------------------------------------------------

@@ -99,7 +99,8 @@ def test_surface_picks_the_c_order_sample_from_samples_in_any_order():
     voxel = 0.003
     samples, boundary = _thin(P, voxel)
     shuffled = np.ascontiguousarray(samples[:, rng.permutation(samples.shape[1])])
-    got = kernels._surface(shuffled, shuffled.shape[1], 2 / voxel, 2 * LATTICE_OFFSET)
+    h = np.floor(samples * (2 / voxel) - 2 * LATTICE_OFFSET[:, None]).astype(np.int32)    # half-voxels
+    got = kernels._surface(shuffled, shuffled.shape[1], h.min(axis=1), h.max(axis=1), 2 / voxel, 2 * LATTICE_OFFSET)
     assert 100 < boundary.shape[1] < samples.shape[1] / 4
     np.testing.assert_array_equal(got, boundary)
 
@@ -116,8 +117,8 @@ def test_unordered_sweep_keeps_the_same_points(ctx):
     half, scale2, off2 = ctx.spec.voxel_m / 2, 2 / ctx.spec.voxel_m, 2 * LATTICE_OFFSET
     pts = np.empty((3, kernels._box_count(link_s[3], half)))
     kernels._box_points(link_c[3], link_s[3], half, pts, 0)
-    samples = kernels._thin_points(pts, scale2, off2)
-    boundary = kernels._surface(samples, samples.shape[1], scale2, off2)
+    samples, lo_h, hi_h = kernels._thin_points(pts, scale2, off2)
+    boundary = kernels._surface(samples, samples.shape[1], lo_h, hi_h, scale2, off2)
     args = (boundary, A.axis[2], A.origin[0, 2], A.lo[2], A.hi[2], half, link_c[2], link_s[2], half, scale2, off2)
     ordered, n, lo, hi = kernels._sweep_thin(samples, samples.shape[1], *args, True)
     kept, m, lo2, hi2 = kernels._sweep_thin(samples, samples.shape[1], *args, False)
