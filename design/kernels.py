@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 from numba import njit
-from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic
 
 #: Same values as design.volume (duplicated here so the kernels import nothing else).
@@ -476,13 +475,13 @@ def _surface(samples, S, lo_h, hi_h, scale2, off2):
     cell = np.empty(S, np.int32)
     place = np.empty(S, np.int32)
     s0, s1 = float(e1 * 64 * W), float(64 * W)
-    base = lo[0] * s0 + lo[1] * s1 + lo[2]
+    corner = lo[0] * s0 + lo[1] * s1 + lo[2]
     f0, f1, f2 = off2[0], off2[1], off2[2]
     X, Y, Z = samples[0, :S], samples[1, :S], samples[2, :S]
     for i in range(S):
         hx, hy, hz = np.floor(X[i] * scale2 - f0), np.floor(Y[i] * scale2 - f1), np.floor(Z[i] * scale2 - f2)
         vx, vy, vz = np.floor(hx * 0.5), np.floor(hy * 0.5), np.floor(hz * 0.5)
-        cell[i] = np.int32(((vx * s0 + vy * s1) + vz) - base)
+        cell[i] = np.int32(((vx * s0 + vy * s1) + vz) - corner)
         place[i] = np.int32(((hx - 2.0 * vx) * 4.0 + (hy - 2.0 * vy) * 2.0) + (hz - 2.0 * vz))
     bits = np.zeros(e0 * e1 * W, np.uint64)
     for i in range(S):
