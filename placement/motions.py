@@ -123,6 +123,18 @@ def stand(body: Body, seconds: float = 12.0, rate_hz: float = 30.0) -> Motion:
     return Motion("stand", t, rv, root)
 
 
+def stand_then(body: Body, then, first_s: float, seconds: float, rate_hz: float = 30.0) -> Motion:
+    """Standing still (:func:`stand`) for ``first_s`` seconds, then ``then(body, rest)`` for the
+    remaining ``seconds - first_s`` (at least a second). The stance's sway and breathing fade out
+    over its last second, so that the two join without a jump."""
+    a = stand(body, first_s, rate_hz)
+    b = then(body, max(seconds - first_s, 1.0), rate_hz)
+    fade = np.clip(first_s - a.t, 0.0, 1.0)
+    return Motion(f"stand-then-{b.name}", np.r_[a.t, a.t[-1] + 1.0 / rate_hz + b.t],
+                  np.concatenate([a.rotvec * fade[:, None, None], b.rotvec]),
+                  np.concatenate([a.root_m * fade[:, None], b.root_m]))
+
+
 PROCEDURAL = {"walk": walk, "sit-down": sit_down, "turn": turn, "reach": reach}
 
 

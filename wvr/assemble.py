@@ -22,6 +22,10 @@ from kinematics.camera import CameraIntrinsics, default_camera, load_camera
 CLICK_ERROR_PX = 2.5
 
 
+#: stand-then-sit-down: the wearer stands still this long (time for a head-motion start) first.
+STAND_FIRST_S = 8.0
+
+
 def wearer_for(scenario, seconds: float):
     """The twin's wearer for a scenario: the placement body posed by the named placement motion,
     placed in the world where the scenario says (the twin never imports placement itself)."""
@@ -36,8 +40,11 @@ def wearer_for(scenario, seconds: float):
         m = motions.walk(body, seconds, speed_m_s=scenario.walk_speed_m_s, cycle_s=1.2)
     elif scenario.motion == "sit-down":
         m = motions.sit_down(body, seconds)
+    elif scenario.motion == "stand-then-sit-down":
+        m = motions.stand_then(body, motions.sit_down, STAND_FIRST_S, seconds)
     else:
-        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down")
+        raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down, "
+                         "stand-then-sit-down")
     G = scenario.T_world_body() @ body.segment_transforms(m)
     return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
 

@@ -385,11 +385,12 @@ def cmd_sim_run(args) -> int:
         pts, file_dwell = load_targets(args.targets)
         targets += list(pts)
         dwell = file_dwell or dwell
-    if not targets and args.task == "fixate":
+    start = getattr(args, "start", "target")
+    if not targets and args.task == "fixate" and start == "target":
         targets = [scenario.bench.target_corners().mean(axis=0)]
     region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
-                method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args))
+                method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args), start=start)
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     with output_folder(args.out, kind="sim run") as out:    # INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)
@@ -688,7 +689,8 @@ def cmd_run(args) -> int:
         pts, file_dwell = load_targets(args.targets)
         targets += list(pts)
         dwell = file_dwell or dwell
-    if not targets and args.task == "fixate" and start is not None:
+    start_kind = getattr(args, "start", "target")
+    if not targets and args.task == "fixate" and start is not None and start_kind == "target":
         targets = [start.xyz.mean(axis=0)]           # the known target's centre
     region = None
     if args.init is not None:
@@ -696,10 +698,10 @@ def cmd_run(args) -> int:
             raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
         region = tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method,
-                recentre_per_s=_recentre(args))
+                recentre_per_s=_recentre(args), start=start_kind)
     limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
-    if task.uses_slam and start is None:
+    if task.uses_slam and start is None and start_kind == "target":
         raise ValueError(f"task {task.kind} starts SLAM from the known target: give --start-target target.toml "
                          f"(or [start] target in {args.rig})")
     with output_folder(out, kind="run"):        # locked, INCOMPLETE until the session is written
@@ -1037,6 +1039,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--click-error", type=_click_error, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
+    run.add_argument("--start", choices=["target", "head-motion"], default="target", help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion (no target: the wearer keeps still while the head turns out and back in pan and elevation, and that known motion fixes the scale; targets are then in its world frame: origin at the first camera, z up, x ahead; fixate's default target is the clicked point)")
     run.add_argument("--out", required=True, help="output directory")
     _session_log_option(run)
     _twin_options(run, SCENARIOS)
@@ -1070,6 +1073,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "default for fixate: the start target's centre)")
     rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     rr.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
+    rr.add_argument("--start", choices=["target", "head-motion"], default="target", help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion (no target: the wearer keeps still while the head turns out and back in pan and elevation, and that known motion fixes the scale; targets are then in its world frame: origin at the first camera, z up, x ahead; fixate's default target is the start target's clicked centre, else the image's centre)")
     rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
                     help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")

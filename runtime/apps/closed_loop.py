@@ -46,7 +46,9 @@ from ..session_log import SESSION_FILE, LoopRecorder
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
+from ..slam.head_motion_start import point_at_pixel
 from ..slam.system import MonoSLAM
+from .head_motion import HeadMotionPhase
 from ..vision2d.track import METHODS as TRACK_METHODS
 from ..vision2d.track import make_tracker
 
@@ -98,7 +100,10 @@ class Task:
     dwell_s : time on each saccade target before the next. region : track: (x, y, w, h) pixels
     in the first frame (default: the start target's rectangle). method : track: the 2D tracker.
     recentre_per_s : stabilise: the gain of Path A's visual outer loop (runtime.apps.recentre),
-    1/s; 0 (default) holds the attitude from the IMU alone."""
+    1/s; 0 (default) holds the attitude from the IMU alone. start : how SLAM starts: ``target``
+    (the known target's clicked corners) or ``head-motion`` (no target: the head's own known
+    motion fixes the scale, runtime.apps.head_motion; targets are then in the world frame that
+    start makes, and fixate's default target is the clicked point or the image's centre)."""
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -106,14 +111,19 @@ class Task:
     region: tuple | None = None
     method: str = "hyperplane"
     recentre_per_s: float = 0.0
+    start: str = "target"
 
     def __post_init__(self):
         if self.kind not in TASKS:
             raise ValueError(f"task {self.kind!r} unknown; choose one of {', '.join(TASKS)}")
+        if self.start not in STARTS:
+            raise ValueError(f"start {self.start!r} unknown; choose one of {', '.join(STARTS)}")
+        if self.start == "head-motion" and self.kind not in ("fixate", "saccade"):
+            raise ValueError(f"--start head-motion starts SLAM: give it with task fixate or saccade, not {self.kind}")
         t = np.asarray(self.targets, float).reshape(-1, 3)
         if not np.isfinite(t).all():
             raise ValueError("task targets must be finite world points (x, y, z) m")
-        if self.kind in ("fixate", "saccade") and len(t) == 0:
+        if self.kind == "saccade" and len(t) == 0 or self.kind == "fixate" and len(t) == 0 and self.start == "target":
             raise ValueError(f"task {self.kind} needs a target: give --target X,Y,Z or --targets FILE")
         if self.kind == "saccade" and len(t) < 2:
             raise ValueError("task saccade needs at least two targets (--targets FILE)")
@@ -131,6 +141,9 @@ class Task:
     def uses_slam(self) -> bool:
         return self.kind in ("fixate", "saccade")
 
+
+#: How SLAM's map can start in the closed loop.
+STARTS = ("target", "head-motion")
 
 #: How far from the world's origin a target may be, m (a wearable's scene is metres across).
 MAX_TARGET_M = 1000.0
@@ -256,7 +269,7 @@ class ClosedLoop:
 
     def __init__(self, info: RobotInfo, task: Task, start_target: StartTarget | None = None,
                  settings: ControllerSettings = ControllerSettings()):
-        if task.uses_slam and start_target is None:
+        if task.uses_slam and start_target is None and task.start == "target":
             raise ValueError(f"task {task.kind} starts SLAM from a known target: give its target.toml "
                              f"(known points and their pixels in the first image)")
         if task.kind == "track" and task.region is None and start_target is None:
@@ -282,6 +295,9 @@ class ClosedLoop:
         self._kind: str = task.kind
         self._external_target: np.ndarray | None = None
         self.external = False
+        self.head_start: HeadMotionPhase | None = None
+        self.start_result = None            # the head-motion start's HeadMotionResult, once made
+        self._task_t0: float | None = None  # when the task began (the saccades' dwell counts from it)
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -289,7 +305,10 @@ class ClosedLoop:
             self.start_target = self.start_target(obs)
         if self.task.uses_slam:
             self.slam = MonoSLAM(self.info.camera, slam_config(self.info), imu=True)
-            self.slam.start(obs.image, obs.t, self.start_target)
+            if self.task.start == "head-motion":
+                self.head_start = HeadMotionPhase(self.info.head, self.info.camera, obs.q)
+            else:
+                self.slam.start(obs.image, obs.t, self.start_target)
         self.ctl = GazeController(self.info.head, self.info.camera, obs.q, self.dt, self.settings)
         if self.task.kind == "track":
             self.region_uv = region_polygon(self.task.region) if self.task.region is not None \
@@ -300,6 +319,7 @@ class ClosedLoop:
         self._q_prev = np.asarray(obs.q, float).copy()
         self._i = 0
         self._basis_t = obs.t
+        self._task_t0 = obs.t if self.head_start is None else None
 
     @property
     def prompts(self):
@@ -359,6 +379,33 @@ class ClosedLoop:
         except GazeRefused as e:
             self.log.refusals.append({"t": t, "target": i, "reason": str(e)})
 
+    def _head_motion_start(self, obs: Observation) -> bool:
+        """A period of the head-motion start; True at the period SLAM starts (the task begins)."""
+        phase = self.head_start
+        n_said = len(phase.said)
+        r = phase.step(obs, self.ctl)
+        for t, text in phase.said[n_said:]:
+            self.log.events.append({"t": t, "event": "start", "text": text})
+        if r is None:
+            return False
+        slam = self.slam
+        slam.add_imu(phase.imu_rows)
+        slam.start_natural(obs.image, obs.t, r.start)
+        self.start_result = r
+        self.head_start = None
+        self._task_t0 = obs.t
+        self._imu_pending = []
+        if self.task.kind == "fixate" and len(self.task.targets) == 0:
+            # Fixate what the person clicked in the first image, else what the camera looked at.
+            tgt = self.start_target(obs) if callable(self.start_target) else self.start_target
+            uv = (np.asarray(tgt.uv, float)[:4].mean(axis=0) if tgt is not None
+                  else np.array([self.info.camera.cx, self.info.camera.cy]))
+            p = point_at_pixel(self.info.camera, r, uv)
+            self.task = replace(self.task, targets=p[None])
+            self.log.events.append({"t": obs.t, "event": "start", "text": "fixation target from the first image's "
+                                    f"{'click' if tgt is not None else 'centre'}: {np.round(p, 3).tolist()} m"})
+        return True
+
     def step(self, obs: Observation) -> JointCommand:
         """One period: the observation in (after the robot's step, or the first one after
         :meth:`start`), the command for the next period out; appends a :class:`LoopRow`."""
@@ -366,7 +413,11 @@ class ClosedLoop:
             raise RuntimeError("call start(first observation) first")
         i, task, ctl, slam = self._i, self.task, self.ctl, self.slam
         imu = obs.imu.rows()
-        if slam is not None and i > 0:
+        begin = i == 1
+        if self.head_start is not None:
+            begin = self._head_motion_start(obs)
+            task = self.task
+        elif slam is not None and i > 0:
             # SLAM folds in each fresh image with the IMU since the last one it saw.
             self._imu_pending.append(imu)
             if obs.fresh_image:
@@ -375,7 +426,7 @@ class ClosedLoop:
         lost = bool(slam is not None and not slam.localised)
         T_est = slam.T_world_cam() if slam is not None and not lost else None
         v_est = slam.state.v.copy() if T_est is not None else None
-        if i == 1 and not self.external:
+        if begin and not self.external:
             # The first IMU rows arrive with the first step, and the mount's pose is known once
             # the controller has stepped once: the task starts then.
             if task.kind == "stabilise":
@@ -388,7 +439,8 @@ class ClosedLoop:
                 ctl.body()
             elif task.kind in ("fixate", "saccade"):
                 self._set_target(0, obs.t)
-        if task.kind == "saccade" and not self.external and i > 1 and obs.t >= (self._current + 1) * task.dwell_s:
+        if task.kind == "saccade" and not self.external and i > 1 and self._task_t0 is not None \
+                and obs.t - self._task_t0 >= (self._current + 1) * task.dwell_s:
             self._current += 1
             self._set_target(self._current % len(task.targets), obs.t)
         if self.recentring is not None and self._kind == "stabilise" and obs.fresh_image \
@@ -409,7 +461,9 @@ class ClosedLoop:
         # What the command rests on, for the robot's safety watchdog: the newest SLAM pose, IMU
         # sample or tracker fix (the task's own estimate; none for Path B).
         kind = self._kind
-        if kind in ("fixate", "saccade", "hold") and slam is not None:
+        if self.head_start is not None:
+            self._basis_t = obs.t          # the start's motion rests on the encoders alone
+        elif kind in ("fixate", "saccade", "hold") and slam is not None:
             if T_est is not None:
                 self._basis_t = obs.t
         elif kind == "stabilise":
@@ -434,7 +488,7 @@ class ClosedLoop:
         self.log.rows.append(LoopRow(
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,
             target=np.asarray(tgt, float).copy(), est_error_deg=err, q_source=obs.q_source,
-            T_est=slam.T_world_cam() if slam is not None else np.full((4, 4), np.nan), lost=lost,
+            T_est=slam.T_world_cam() if slam is not None and slam.started else np.full((4, 4), np.nan), lost=lost,
             polygon=np.asarray(poly, float), track_lost=track_lost, reachable=bool(cmd.reachable)))
         self._i += 1
         return JointCommand(cmd.q, cmd.qd, basis_t=self._basis_t)
@@ -478,6 +532,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     bar = progress_bar(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
     ctrl_c = _CtrlC()
+    start_depth, n_said = None, 0
     try:
         i = 0
         while True:
@@ -486,6 +541,13 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
             if truth is not None:
                 truths.append(truth.truth())
             cmd = loop.step(obs)
+            for e in loop.log.events[n_said:]:
+                if e["event"] == "start" and progress:
+                    progress_bar.write(f"t = {e['t']:.1f} s: {e['text']}")
+            n_said = len(loop.log.events)
+            if loop.start_result is not None and start_depth is None and hasattr(truth, "render_depth"):
+                # Scoring only, after the step: the true depth where the head-motion start was made.
+                start_depth = truth.render_depth()
             if recorder is not None:
                 recorder.period(loop, obs, cmd)
             if on_period is not None:
@@ -528,12 +590,18 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     summary["peak_meas_rate_deg_s"] = float(np.degrees(np.abs(meas_rate[1:]).max())) if len(log.rows) > 1 else 0.0
     times = log.times
     if loop.slam is not None:
-        write_trajectory(out / "trajectory.tum", times, np.array([r.T_est for r in log.rows]),
-                         header="SLAM camera-to-world poses during the loop")
+        # Periods before SLAM started (a head-motion start's motion) have no pose, and no row.
+        T_est = np.array([r.T_est for r in log.rows])
+        has = np.isfinite(T_est).all(axis=(1, 2))
+        write_trajectory(out / "trajectory.tum", times[has], T_est[has], header="SLAM camera-to-world poses during the loop")
     if truth is not None:
         T_true = np.array([tr.T_world_cam for tr in truths])
         write_trajectory(out / "groundtruth.txt", times, T_true, header="true camera-to-world poses (optical frame)")
-        summary.update(evaluate(log, T_true, truth.landmarks(), task, info.camera, loop.region_uv, out))
+        summary.update(evaluate(log, T_true, truth.landmarks(), loop.task, info.camera, loop.region_uv, out))
+        if loop.start_result is not None and start_depth is not None:
+            from .evaluate import start_map_scale
+
+            summary.update(start_map_scale(loop.start_result.start, start_depth))
     with open(out / "joints.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(LoopRow.CSV_HEADER)
@@ -547,7 +615,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
         from .evaluate import write_tracking
 
         write_tracking(out, log, None)
-    (out / "task.toml").write_text(task_toml(task, task_info or {}))
+    (out / "task.toml").write_text(task_toml(loop.task, task_info or {}))
     write_outputs(out, times, summary, cmd_rate, settings)
     if fault is not None:
         raise fault

@@ -103,20 +103,67 @@ def _landings(times, err_deg, events) -> list[dict]:
     return out
 
 
+def start_map_scale(start, depth: np.ndarray) -> dict:
+    """The scale of a start's map against the true depth image (H, W) m along the optic axis at
+    its frame: each point's depth along the start camera's optic axis over the true depth at its
+    pixel (where the truth has one); the median less one is the scale's error."""
+    T = np.asarray(start.T_world_cam, float)
+    z_est = (np.asarray(start.xyz, float) - T[:3, 3]) @ T[:3, 2]
+    uv = np.round(np.asarray(start.uv, float)).astype(int)
+    h, w = depth.shape
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    z_true = np.full(len(uv), np.nan)
+    z_true[ok] = depth[uv[ok, 1], uv[ok, 0]]
+    ok &= np.isfinite(z_true) & (z_true > 0)
+    if not ok.any():
+        return {}
+    ratio = z_est[ok] / z_true[ok]
+    return {"start_map_scale_error": float(np.median(ratio) - 1.0), "start_map_points": int(ok.sum())}
+
+
+def _head_motion_scores(times: np.ndarray, T_est: np.ndarray, T_true: np.ndarray) -> dict:
+    """A head-motion start's scores over the frames SLAM gave poses (it starts after the motion):
+    the ATE with the estimate put on the truth by the start frame's pose alone (no fitted
+    alignment, so the scale and the levelling count), and the similarity's scale over the run
+    (truth units per estimate unit: 1 is metric). ``T_true_est`` : (4, 4) that start-frame
+    alignment, for mapping the task's targets."""
+    ok = np.isfinite(T_est).all(axis=(1, 2))
+    if ok.sum() < 2:
+        return {"slam_started": bool(ok.any())}
+    k = int(np.argmax(ok))
+    A = T_true[k] @ np.linalg.inv(T_est[k])
+    T_on = A[None] @ T_est[ok]
+    err = np.linalg.norm(T_on[:, :3, 3] - T_true[ok, :3, 3], axis=1)
+    e = trajectory_errors(Trajectory.from_T_world_cam(times[ok], T_est[ok]),
+                          Trajectory.from_T_world_cam(times[ok], T_true[ok]))
+    return {"slam_started": True, "slam_start_s": float(times[k] - times[0]),
+            "ate_rmse_m": float(np.sqrt(np.mean(err**2))), "ate_max_m": float(err.max()),
+            "ate_sim3_rmse_m": e.ate_sim3_rmse_m, "scale_error": float(e.sim3_scale - 1.0), "T_true_est": A.tolist()}
+
+
 def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntrinsics,
              region_uv: np.ndarray | None, out: Path) -> dict:
     """The run's scores against the truth logged beside each period (T_true (n, 4, 4))."""
     s: dict = {}
     times = log.times
     after = times >= times[0] + 1.0
-    if task.uses_slam:
+    targets = log.column("target") if task.kind in ("fixate", "saccade") else None
+    if task.uses_slam and getattr(task, "start", "target") == "head-motion":
+        s.update(_head_motion_scores(times, np.array([r.T_est for r in log.rows]), T_true))
+        if targets is not None and "T_true_est" in s:
+            # The targets are in the start's world: the truth's through the start-frame alignment.
+            A = np.asarray(s.pop("T_true_est"))
+            targets = targets @ A[:3, :3].T + A[:3, 3]
+    elif task.uses_slam:
         T_est = np.array([r.T_est for r in log.rows])
         e = trajectory_errors(Trajectory.from_T_world_cam(times, T_est), Trajectory.from_T_world_cam(times, T_true))
         s.update(ate_rmse_m=e.ate_rmse_m, ate_max_m=e.ate_max_m)
     if task.kind in ("fixate", "saccade"):
-        targets = log.column("target")
         err = np.degrees(fixation_errors(T_true, targets))
         s["fixation_error_deg"] = err.tolist()
+        if "slam_start_s" in s:
+            # A head-motion start: the task begins once SLAM has started.
+            after = after & (times >= times[0] + s["slam_start_s"] + 1.0) & np.isfinite(err)
         if task.kind == "fixate" and after.any():
             s.update(fixation_rms_deg=float(np.sqrt(np.mean(err[after] ** 2))), fixation_peak_deg=float(err[after].max()))
         if task.kind == "saccade":

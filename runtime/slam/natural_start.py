@@ -73,9 +73,11 @@ class NaturalStart:
     uv : (n, 2) the points' pixels in the reference frame.
     xyz : (n, 3) the points, world frame, m (or the arbitrary unit when ``scale`` is "arbitrary").
     xyz_cov : (n, 3, 3) their covariances.
-    scale : "depth" or "arbitrary": what fixed the unit.
+    scale : "depth", "head-motion" or "arbitrary": what fixed the unit.
     v_world : (3,) the camera's velocity at the reference frame as the two views saw it, m/s (zero
         for a depth start).
+    T_world_cam : (4, 4) the camera's pose at that frame; None: the world is its frame (the
+        head-motion start's world is the motion's first camera, levelled).
     """
 
     frame: int
@@ -84,6 +86,7 @@ class NaturalStart:
     xyz_cov: np.ndarray
     scale: str
     v_world: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    T_world_cam: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

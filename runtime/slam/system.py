@@ -275,11 +275,14 @@ class MonoSLAM:
 
     def start_natural(self, image: np.ndarray, t: float, ns) -> None:
         """Start from natural features (natural_start.NaturalStart of this frame): the camera at
-        the world's origin, fixed (the first camera's frame is the world's, the gauge), the start's
+        the start's pose (by default the world's origin: the first camera's frame is the world's),
+        fixed (the gauge), the start's
         points mapped as point features with their covariances, its velocity the two views'. No
         target: nothing is watched for or sought again but the map."""
         g = grey(image)
-        hyp = PoseHypothesis(np.eye(3), np.zeros(3), np.zeros((6, 6)), 0.0, 0.0)
+        T = np.eye(4) if ns.T_world_cam is None else np.asarray(ns.T_world_cam, float)
+        R_wc, r = T[:3, :3].copy(), T[:3, 3].copy()
+        hyp = PoseHypothesis(R_wc, r, np.zeros((6, 6)), 0.0, 0.0)
         state = self._camera_state(hyp, t)
         state.x[7:10] = ns.v_world
         ph = patch_half(self.template_px)
@@ -289,8 +292,8 @@ class MonoSLAM:
             if tpl is None or float(np.std(tpl)) <= 2.0:
                 continue
             state.add_feature(POINT, X, C, np.zeros((3, state.n)))
-            feats.append(MapFeature(len(feats), tpl, 0, np.zeros(3), patch=first_view_patch(g, uv, ph),
-                                    uv0=np.asarray(uv, float), R0=np.eye(3), normal=-X / np.linalg.norm(X),
+            feats.append(MapFeature(len(feats), tpl, 0, r.copy(), patch=first_view_patch(g, uv, ph),
+                                    uv0=np.asarray(uv, float), R0=R_wc.copy(), normal=(r - X) / np.linalg.norm(r - X),
                                     last_seen=0))
         if len(feats) < 3:
             raise SlamStartError("the natural start's points have no usable appearance (a blank view)")

@@ -4,7 +4,7 @@ recording's head does.
 The place (``Scenario.scene``) is a workbench, a kitchen counter or an office desk, each with
 its own known target (:mod:`runtime.twin.workbench`, :mod:`.kitchen`, :mod:`.office`); its
 textures and layout come from the scene seed. The body's motion is named (``stand``, ``walk``,
-``sit-down``) and supplied by whoever builds the wearer (the placement motions, through
+``sit-down``, ``stand-then-sit-down``) and supplied by whoever builds the wearer (the placement motions, through
 ``wvr``); the scenario places the body in the world (``body_xy``, ``body_yaw``: the body frame
 faces -y rotated by the yaw) and says what the scripted head looks at in a recording (the
 closed loop replaces the script by a controller).
@@ -187,6 +187,10 @@ SCENARIOS: dict[str, Scenario] = {
     "walk": Scenario("walk", "walk", 12.0, (-1.6, 0.05), math.pi / 2, "follow", walk_speed_m_s=0.27,
                      scene=Workbench(**_LONG_BENCH, target_xy=(-1.35, -0.6))),
     "sit-down": Scenario("sit-down", "sit-down", 6.0, (0.0, 0.15), 0.0, "hold-target", stool=True),
+    # Standing still for 8 s (time for a start without a target: --start head-motion), then
+    # sitting down as in sit-down, the head on the target.
+    "stand-then-sit-down": Scenario("stand-then-sit-down", "stand-then-sit-down", 14.0, (0.0, 0.15), 0.0,
+                                    "hold-target", stool=True),
     # A textured card moved about in front of the camera, which follows it: 2D tracking data
     # with ground truth (card_corners), a quarter of the card occluded from 1 s to 3 s.
     "workbench-card": Scenario("workbench-card", "stand", 6.0, (0.0, 0.05), 0.0, "follow-card", moving_card=True),

@@ -1,0 +1,46 @@
+"""The closed loop's head-motion start on the twin: no target in SLAM's start, the head's own
+known motion fixes the map's scale; scored against the twin's truth from the written files."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from runtime.sequence import read_trajectory
+from wvr.cli import main
+
+pytestmark = pytest.mark.slow
+
+
+def test_a_still_wearer_gets_a_metric_map_from_the_heads_motion(tmp_path):
+    out = tmp_path / "run"
+    code = main(["sim", "run", "--task", "fixate", "--scenario", "office-static", "--seed", "1", "--start",
+                 "head-motion", "--seconds", "9", "--no-session-log", "--out", str(out)])
+    assert code == 0
+    est, gt = read_trajectory(out / "trajectory.tum"), read_trajectory(out / "groundtruth.txt")
+    # SLAM gave no pose before the motion was made (wait for stillness, about 5 s of motion) ...
+    assert 3.0 < est.t[0] - gt.t[0] < 8.0 and len(est.t) > 30
+    # ... and from then on its map is metric without any target: the start's points' depths
+    # against the twin's true depth image at that frame.
+    s = json.loads((out / "summary.json").read_text())
+    assert abs(s["start_map_scale_error"]) < 0.05 and s["start_map_points"] >= 20
+    assert s["lost_frames"] == 0
+    assert s["ate_rmse_m"] < 0.02                  # the estimate put on the truth by its first pose only
+    said = [e["text"] for e in s["events"] if e["event"] == "start"]
+    assert any("SLAM started metric" in t for t in said)
+    # The head fixated the clicked point once the start was made.
+    assert s["fixation_rms_deg"] < 1.0
+    with open(out / "joints.csv") as fh:
+        pan = np.array([float(r["meas_pan"]) for r in csv.DictReader(fh)])
+    assert np.ptp(np.degrees(pan)) > 15             # the start's motion did happen
+
+
+@pytest.mark.parametrize("task, words", [("stabilise", "with task fixate or saccade"),
+                                         ("body", "with task fixate or saccade")])
+def test_head_motion_start_on_a_task_without_slam_is_refused(tmp_path, capsys, task, words):
+    code = main(["sim", "run", "--task", task, "--scenario", "workbench-static", "--start", "head-motion",
+                 "--seconds", "1", "--out", str(tmp_path / "x")])
+    assert code == 2
+    assert words in capsys.readouterr().err
+    assert not (tmp_path / "x" / "summary.json").exists()

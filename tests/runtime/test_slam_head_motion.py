@@ -1,0 +1,269 @@
+"""The head-motion start: the map's metric scale from the head's own known motion.
+
+Checked against an independent ground truth: a textured plane rendered by its exact homography
+at every pose of the head's motion (reference head, forward kinematics), with the mount drifting
+as a still wearer's does; the start's points must lie on the plane at its true distance.
+"""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kinematics import forward_kinematics
+from kinematics.camera import default_camera
+from kinematics.geometry import reference_head
+from runtime.apps.head_motion import CORNERS, HeadMotionPhase, HeadMotionPlan, level_attitude, waypoints
+from runtime.slam.head_motion_start import HeadMotionSettings, HeadMotionStart, gyro_turns, point_at_pixel
+from runtime.slam.natural_start import StartWait
+
+CAM = default_camera()
+K = np.array([[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1.0]])
+RATE = math.radians(30.0)
+
+
+def _texture(seed: int = 0, size: int = 1400) -> np.ndarray:
+    """A blotchy texture with corners at several scales, 1 px = 1 mm."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((size, size), np.float32)
+    for s, a in ((9, 60), (25, 50), (70, 40)):
+        n = cv2.resize(rng.uniform(-1, 1, (size // s + 2, size // s + 2)).astype(np.float32), (size, size),
+                       interpolation=cv2.INTER_NEAREST if s == 9 else cv2.INTER_LINEAR)
+        img += a * n
+    return np.clip(128 + img, 0, 255).astype(np.uint8)
+
+
+def _joint_path(q0: np.ndarray, amplitude: float, dt: float) -> np.ndarray:
+    """(F, 3) joint angles at the controlled-motion limit through the corners, then 0.4 s held."""
+    qs, q = [q0.copy()], q0.copy()
+    for e, p in CORNERS:
+        w = q0 + amplitude * np.array([e, p, 0.0])
+        while np.abs(w - q).max() > 1e-9:
+            q = q + np.clip(w - q, -RATE * dt, RATE * dt)
+            qs.append(q.copy())
+    qs += [q.copy()] * int(0.4 / dt)
+    return np.array(qs)
+
+
+def _plane_frame(tex, n, point, R, c) -> tuple[np.ndarray, np.ndarray]:
+    """The plane through ``point`` with unit normal n textured by ``tex`` (1 px = 1 mm, its
+    centre at ``point``) seen by a camera at R, c (first camera's frame): the image (H, W) and
+    each pixel's distance along its ray (inf where the plane is behind)."""
+    e1 = np.cross(n, [0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    h = tex.shape[0] / 2000.0
+    A = np.column_stack([e1 / 1000, e2 / 1000, point - h * (e1 + e2)])
+    H = K @ R.T @ (A - np.outer(c, [0, 0, 1]))
+    img = cv2.warpPerspective(tex, H, (CAM.width, CAM.height), flags=cv2.INTER_LINEAR).astype(np.float32)
+    u, v = np.meshgrid(np.arange(CAM.width), np.arange(CAM.height))
+    rays = np.stack([(u - CAM.cx) / CAM.fx, (v - CAM.cy) / CAM.fy, np.ones_like(u, float)], -1) @ R.T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    s = ((point - c) @ n) / (rays @ n)
+    return img, np.where(s > 0, s, np.inf)
+
+
+#: The scene, first camera's frame: a desk tilted up towards 1.3 m ahead, a wall 1.9 m away.
+PLANES = ((np.array([0.0, -0.35, -1.0]) / np.linalg.norm([0.0, -0.35, -1.0]), np.array([0.0, 0.0, 1.3])),
+          (np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 1.9])))
+
+
+def _depth_true(X: np.ndarray) -> np.ndarray:
+    """(n,) the true distance to the scene along each point's ray from the first camera."""
+    u = X / np.linalg.norm(X, axis=1, keepdims=True)
+    d = np.array([(p @ n) / (u @ n) for n, p in PLANES])
+    d[d <= 0] = np.inf
+    return d.min(axis=0)
+
+
+def _scene(drift: bool, seed: int = 0):
+    """Frames of the motion (two textured planes, each pixel the nearer), their times, the
+    head-model poses, the true camera poses (first camera's frame) and gyro rows."""
+    head = reference_head()
+    q0 = np.array([0.0, 0.0, 0.0])
+    dt = 1 / 30
+    qs = _joint_path(q0, math.radians(10.0), dt)
+    t = np.arange(len(qs)) * dt
+    M = forward_kinematics(head, qs).T_mount_cam
+    # A still wearer: breathing turns the mount ~0.6 deg, sway moves it a few mm, slowly.
+    D = np.tile(np.eye(4), (len(t), 1, 1))
+    if drift:
+        rng = np.random.default_rng(seed)
+        ph = rng.uniform(0, 2 * np.pi, 2)
+        D[:, :3, :3] = Rotation.from_rotvec(np.outer(np.sin(2 * np.pi * 0.25 * t + ph[0]) - np.sin(ph[0]),
+                                                     [0.0, 0.01, 0.004])).as_matrix()
+        D[:, :3, 3] = np.outer(np.sin(2 * np.pi * 0.2 * t + ph[1]) - np.sin(ph[1]), [0.004, 0.003, 0.002])
+    T_c0 = np.linalg.inv(M[0])[None] @ D @ M                # true T_cam0_cam
+    texs = (_texture(seed, 1600), _texture(seed + 10, 3000))
+    frames = []
+    for T in T_c0:
+        views = [_plane_frame(tex, n, p, T[:3, :3], T[:3, 3]) for tex, (n, p) in zip(texs, PLANES)]
+        near = views[0][1] <= views[1][1]
+        frames.append(np.where(near, views[0][0], views[1][0]))
+    gyro_t = np.arange(0, t[-1] + 1e-9, 0.005)
+    from scipy.spatial.transform import Slerp
+    R_g = Slerp(t, Rotation.from_matrix(T_c0[:, :3, :3]))(gyro_t)
+    w = (R_g[:-1].inv() * R_g[1:]).as_rotvec() / 0.005          # the camera's rates, camera frame
+    # A MEMS gyro's errors: a bias, 0.5% scale and cross-axis terms, a 3 ms late clock.
+    E = np.array([[0.005, 0.003, 0.0], [-0.002, -0.004, 0.003], [0.0, 0.002, 0.005]])
+    w = w @ (np.eye(3) + E).T + [0.004, -0.006, 0.003]
+    rows = np.column_stack([gyro_t[:-1] + 0.003, w, np.zeros((len(w), 3))])
+    return frames, t, M, T_c0, rows
+
+
+@pytest.fixture(scope="module")
+def drifting():
+    return _scene(drift=True, seed=1)
+
+
+def _start(frames, t, M, rows=None):
+    est = HeadMotionStart(CAM)
+    for g, ti, Mi in zip(frames, t, M):
+        est.add(g, ti, Mi)
+    return est.solve(np.eye(3), rows)
+
+
+def test_points_land_on_the_plane_at_its_true_distance(drifting):
+    frames, t, M, T_c0, rows = drifting
+    r = _start(frames, t, M, rows)
+    assert not isinstance(r, StartWait), r
+    X = r.start.xyz                                   # world = first camera's frame here
+    depth_true = _depth_true(X)
+    ratio = np.linalg.norm(X, axis=1) / depth_true
+    assert len(X) >= 30
+    # The map's unit is the metre: its median within 3%, and the points on the plane.
+    assert abs(np.median(ratio) - 1) < 0.03, np.median(ratio)
+    assert np.percentile(np.abs(ratio - np.median(ratio)), 90) < 0.12
+    # Seen from the start's camera (the last frame, where SLAM begins) the map is metric too.
+    T_end = r.start.T_world_cam
+    rng_est = np.linalg.norm(X - T_end[:3, 3], axis=1)
+    X_true = X / np.linalg.norm(X, axis=1, keepdims=True) * depth_true[:, None]
+    rng_true = np.linalg.norm(X_true - T_c0[-1, :3, 3], axis=1)
+    assert abs(np.median(rng_est / rng_true) - 1) < 0.03
+    # Covariances say how far each point may be: most within 3 sigma along the ray.
+    u = X / np.linalg.norm(X, axis=1, keepdims=True)
+    sd = np.sqrt(np.einsum("ni,nij,nj->n", u, r.start.xyz_cov, u))
+    err = np.linalg.norm(X, axis=1) - depth_true
+    assert np.mean(np.abs(err) < 3 * sd) > 0.8
+
+
+def test_ignoring_the_drift_gets_the_scale_wrong(drifting):
+    """The drift model is what the scale rests on: without the gyro's turn and the drift terms the
+    same frames give a different, wrong map (so the first test is not passed by accident)."""
+    frames, t, M, T_c0, rows = drifting
+    est = HeadMotionStart(CAM, HeadMotionSettings(rotation_order=1, drift_sigma_m=1e-6, drift_sigma_rad=1e-6))
+    for g, ti, Mi in zip(frames, t, M):
+        est.add(g, ti, Mi)
+    r = est.solve()
+    if isinstance(r, StartWait):
+        return                                         # refused: the frames disagree with a still mount
+    X = r.start.xyz
+    assert abs(np.median(np.linalg.norm(X, axis=1) / _depth_true(X)) - 1) > 0.05
+
+
+def test_a_still_mount_needs_no_gyro():
+    frames, t, M, T_c0, rows = _scene(drift=False, seed=2)
+    r = _start(frames, t, M)
+    assert not isinstance(r, StartWait), r
+    X = r.start.xyz
+    assert abs(np.median(np.linalg.norm(X, axis=1) / _depth_true(X)) - 1) < 0.03
+    # The clicked pixel's point: the image centre's ray meets the desk at 1.3 m.
+    p = point_at_pixel(CAM, r, np.array([CAM.cx, CAM.cy]))
+    assert np.linalg.norm(p - [0, 0, 1.3]) < 0.05
+
+
+def test_a_blank_view_waits_and_says_why():
+    est = HeadMotionStart(CAM)
+    M = forward_kinematics(reference_head(), _joint_path(np.zeros(3), math.radians(12.0), 1 / 30)).T_mount_cam
+    for i, Mi in enumerate(M[:60]):
+        est.add(np.full((CAM.height, CAM.width), 90.0, np.float32), i / 30, Mi)
+    r = est.solve()
+    assert isinstance(r, StartWait) and "textured" in r.reason
+
+
+def test_gyro_turns_integrate_a_known_rate():
+    t = np.arange(0, 2, 0.005)
+    rows = np.column_stack([t, np.tile([0.1, -0.2, 0.3], (len(t), 1)), np.zeros((len(t), 3))])
+    tf = np.array([0.2, 0.7, 1.5])
+    R = gyro_turns(rows, tf)
+    want = Rotation.from_rotvec(np.outer(tf - tf[0], [0.1, -0.2, 0.3])).as_matrix()
+    assert np.allclose(R, want, atol=1e-9)
+
+
+# ------------------------------------------------------------------ the phase that drives the head
+
+class _Imu:
+    def __init__(self, rows):
+        self._rows = rows
+
+    def rows(self):
+        return self._rows
+
+
+class _Obs:
+    def __init__(self, t, q, rows, image=None):
+        self.t, self.q, self.imu, self.image, self.fresh_image = t, q, _Imu(rows), image, image is not None
+
+
+class _Ctl:
+    """The controller as the phase sees it: modes set, and the command filter's angles."""
+
+    class _Filter:
+        q = np.zeros(3)
+
+    def __init__(self):
+        self.modes = []
+        self.filter = self._Filter()
+
+    def hold(self):
+        self.modes.append("hold")
+
+    def slave(self, q):
+        self.modes.append(("slave", np.asarray(q).copy()))
+
+
+def test_a_head_whose_camera_is_on_its_axes_is_refused():
+    from dataclasses import replace
+
+    from kinematics.chain import radii_of_rotation
+    head = reference_head()
+    on_axes = replace(head, joints=tuple(replace(j, origin_m=(0.0, 0.0, 0.0)) for j in head.joints),
+                      camera=replace(head.camera, origin_m=(0.0, 0.0, 0.0)))
+    assert radii_of_rotation(on_axes).max() < 1e-9
+    with pytest.raises(ValueError, match="no baseline"):
+        HeadMotionPhase(on_axes, CAM, np.zeros(3))
+    HeadMotionPhase(head, CAM, np.zeros(3))           # the reference head's camera is off its axes
+
+
+def test_a_moving_wearer_is_waited_for_and_told():
+    phase = HeadMotionPhase(reference_head(), CAM, np.zeros(3))
+    ctl = _Ctl()
+    img = np.full((CAM.height, CAM.width, 3), 100, np.uint8)
+    # Turning at 20 deg/s about the camera's y axis for 3 s: the start waits, holding the head.
+    for k in range(90):
+        t = k / 30
+        ts = t - 1 / 30 + np.arange(1, 7) / 200
+        rows = np.column_stack([ts, np.tile([0.0, math.radians(20), 0.0], (6, 1)), np.tile([0, -9.81, 0], (6, 1))])
+        assert phase.step(_Obs(t, np.zeros(3), rows, img), ctl) is None
+    assert phase.state == "waiting" and set(ctl.modes) == {"hold"}
+    assert "keep still" in phase.said[-1][1] and "20.0 deg/s" in phase.said[-1][1]
+    # Still: the motion begins, towards the first corner.
+    for k in range(90, 120):
+        t = k / 30
+        ts = t - 1 / 30 + np.arange(1, 7) / 200
+        rows = np.column_stack([ts, np.zeros((6, 3)), np.tile([0, -9.81, 0], (6, 1))])
+        phase.step(_Obs(t, np.zeros(3), rows, img), ctl)
+    assert phase.state == "moving"
+    assert np.allclose(ctl.modes[-1][1], waypoints(reference_head(), np.zeros(3), HeadMotionPlan().amplitude_rad)[0])
+
+
+def test_level_attitude_puts_gravity_down():
+    R_true = Rotation.from_euler("xyz", [100, 5, -30], degrees=True).as_matrix()     # camera to world
+    f_cam = R_true.T @ np.array([0, 0, 9.81])
+    R = level_attitude(f_cam)
+    assert np.allclose(R @ f_cam / 9.81, [0, 0, 1], atol=1e-9)
+    # Heading: the optic axis's horizontal part is world x.
+    z_world = R @ np.array([0, 0, 1.0])
+    assert abs(z_world[1]) < 1e-9 and z_world[0] > 0
