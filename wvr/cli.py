@@ -402,7 +402,9 @@ def cmd_sim_run(args) -> int:
         finally:
             twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
-    print(f"wrote {args.out}: groundtruth.txt, trajectory.tum, task.toml, joints.csv, prompts.csv, head.toml, report.md")
+    # Only what this task wrote (a task without SLAM writes no trajectory.tum).
+    names = ("groundtruth.txt", "trajectory.tum", "task.toml", "joints.csv", "prompts.csv", "head.toml", "report.md")
+    print(f"wrote {args.out}: " + ", ".join(n for n in names if Path(args.out, n).exists()))
     return 0 if not s["refusals"] else 1
 
 

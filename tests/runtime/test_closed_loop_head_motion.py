@@ -44,3 +44,12 @@ def test_head_motion_start_on_a_task_without_slam_is_refused(tmp_path, capsys, t
     assert code == 2
     assert words in capsys.readouterr().err
     assert not (tmp_path / "x" / "summary.json").exists()
+
+
+def test_a_task_without_slam_does_not_say_it_wrote_a_trajectory(tmp_path, capsys):
+    out = tmp_path / "b"
+    assert main(["sim", "run", "--task", "body", "--scenario", "workbench-static", "--seconds", "0.5",
+                 "--no-session-log", "--out", str(out)]) == 0
+    said = capsys.readouterr().out.splitlines()[-1]
+    assert said.startswith(f"wrote {out}:") and "joints.csv" in said
+    assert "trajectory.tum" not in said and not (out / "trajectory.tum").exists()
