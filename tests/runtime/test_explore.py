@@ -136,3 +136,45 @@ def test_bad_settings_are_refused_with_the_fix():
         ExploreSettings(azimuth_deg=(-10.0, 10.0, 0.0))
     with pytest.raises(ValueError, match="sigma_pixel"):
         score_views(_state(np.eye(4), np.zeros((0, 3))), CAM, np.eye(4)[None], sigma_pixel=0.0)
+
+
+@pytest.mark.slow
+def test_explore_on_the_twin_saccades_within_the_limit_and_lands(tmp_path):
+    import csv
+    import json
+
+    from runtime.apps.evaluate import fixation_errors
+    from runtime.sequence import read_trajectory
+    from wvr.cli import main
+
+    out = tmp_path / "run"
+    code = main(["sim", "run", "--scenario", "office-far-target", "--task", "explore", "--seconds", "6", "--seed", "1",
+                 "--out", str(out), "--no-session-log"])
+    assert code == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["ended"] == "complete" and s["lost_frames"] == 0
+    chosen = [e for e in s["events"] if e["event"] == "explore"]
+    assert len(chosen) >= 2 and all(np.isfinite(e["score"]) for e in chosen)
+    assert len({tuple(np.round(e["target"], 3)) for e in chosen}) == len(chosen)     # each a new place
+    assert sum(e["event"] == "landed" for e in s["events"]) >= 2
+    with open(out / "joints.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    rates = np.array([[float(r[f"cmd_rate_{n}"]) for n in ("elevation", "pan", "cyclotorsion")] for r in rows])
+    assert np.abs(rates).max() <= math.radians(30) + 1e-9
+    # The true optic axis reaches each chosen point: at each landing, within 3 degrees of it.
+    gt = read_trajectory(out / "groundtruth.txt")
+    targets = np.array([[float(r[f"target_{a}"]) for a in "xyz"] for r in rows])
+    err = np.degrees(fixation_errors(gt.T_world_cam(), targets))
+    landed = [int(np.argmin(np.abs(gt.t - e["t"]))) for e in s["events"] if e["event"] == "landed"]
+    assert err[landed].max() < 3.0
+    assert read_trajectory(out / "trajectory.tum").t.size > 150
+
+
+def test_explore_task_needs_no_target_and_dwells_1_5_s_by_default():
+    from runtime.apps.closed_loop import Task
+
+    t = Task("explore")
+    assert t.uses_slam and t.dwell_s == 1.5 and t.targets.shape == (0, 3)
+    assert Task("saccade", np.eye(3), ).dwell_s == 2.0 and Task("explore", dwell_s=0.5).dwell_s == 0.5
+    with pytest.raises(ValueError, match="dwell_s"):
+        Task("explore", dwell_s=0.0)
