@@ -428,12 +428,15 @@ class ClosedLoop:
                                     "score": float(ch.score[k]), "pose_info": float(ch.pose_info[k]),
                                     "visible": int(ch.n_visible[k]), "index": self._explore_n})
             return
+        # None accepted: hold the present fixation and choose again after EXPLORE_GIVE_UP_S.
+        self._explore_landed_t = None
 
     def _explore_due(self, t: float) -> bool:
         """Whether explore chooses again now: ``dwell_s`` after landing, or after giving up a
-        saccade that did not land, or (SLAM lost when it was due) as soon as it can."""
+        saccade that did not land (or a choice that found nothing); before any choice, as soon as
+        SLAM is localised, then every ``dwell_s``."""
         if self._explore_target is None:
-            return True
+            return t - self._explore_t >= self.task.dwell_s
         if self._explore_landed_t is not None:
             return t - self._explore_landed_t >= self.task.dwell_s
         return t - self._explore_t >= EXPLORE_GIVE_UP_S
