@@ -7,7 +7,8 @@ ate_rmse_m and map_cone_sr from its summary.json. Printed per scenario and task:
 the worst over the seeds. The viewing cone is the solid angle, sr, of the convex cone of the map's
 feature directions seen from the camera's last position (runtime.apps.explore.viewing_cone_sr).
 
-Held-out seeds: 2-4 by default; the explore settings were chosen on seed 1 only.
+Held-out seeds: 2-4 by default; the explore settings were chosen on seed 1 only. A seed whose
+start target is hidden at the start (no one could click it) is skipped and said.
 
 Run: ``OMP_NUM_THREADS=1 MUJOCO_GL=egl python benchmarks/bench_explore.py [OUT_DIR]`` from the
 repository root (OUT_DIR default /tmp/bench_explore; runs already there are read, not re-run).
@@ -26,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from runtime.apps.closed_loop import Task  # noqa: E402
+from runtime.twin.operator import TargetHidden  # noqa: E402
 from runtime.twin.scenarios import get_scenario  # noqa: E402
 from wvr.assemble import make_twin, run_on_twin  # noqa: E402
 
@@ -49,7 +51,12 @@ def main() -> int:
                         twin = twin or make_twin()
                         task = Task("fixate", sc.bench.target_corners().mean(axis=0)[None]) if task_kind == "fixate" \
                             else Task("explore")
-                        run_on_twin(twin, sc, task, d, seconds=seconds, seed=seed, progress=False, session_log=False)
+                        try:
+                            run_on_twin(twin, sc, task, d, seconds=seconds, seed=seed, progress=False,
+                                        session_log=False)
+                        except TargetHidden as e:
+                            print(f"{name:18s} {task_kind:8s} seed {seed}: skipped: {e}", flush=True)
+                            continue
                     s = json.loads((d / "summary.json").read_text())
                     results.setdefault((name, task_kind), []).append(s)
                     print(f"{name:18s} {task_kind:8s} seed {seed}: ATE {100 * s['ate_rmse_m']:.2f} cm "
