@@ -1030,7 +1030,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="world point to fixate or saccade to, m (repeatable; default for fixate: the scenario's "
                           "known rectangle's centre)")
     run.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
-    run.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
+    run.add_argument("--dwell", type=_positive, default=None,
+                     help="seconds on each saccade target (default 2), or on each fixation explore chooses (default 1.5)")
     run.add_argument("--limit", type=float, default=MOTION_LIMIT_DEG_S,
                      help="controlled-motion limit on every joint rate, deg/s (default %(default)g; at most the servos')")
     run.add_argument("--init", type=_box, metavar="X,Y,W,H",
@@ -1074,7 +1075,8 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--target", action="append", type=_point, metavar="X,Y,Z", help="world point, m (repeatable; "
                     "default for fixate: the start target's centre)")
     rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
-    rr.add_argument("--dwell", type=_positive, default=2.0, help="seconds on each saccade target (default 2)")
+    rr.add_argument("--dwell", type=_positive, default=None,
+                     help="seconds on each saccade target (default 2), or on each fixation explore chooses (default 1.5)")
     rr.add_argument("--start", choices=["target", "head-motion"], default="target", help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion (no target: the wearer keeps still while the head turns out and back in pan and elevation, and that known motion fixes the scale; targets are then in its world frame: origin at the first camera, z up, x ahead; fixate's default target is the start target's clicked centre, else the image's centre)")
     rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
                     help="controlled-motion limit, deg/s (at most rig.toml's)")

@@ -18,6 +18,8 @@ Tasks
 ``saccade``  saccade through the targets in turn, ``dwell_s`` on each (cycling), fixating in between.
 ``stabilise`` Path A: hold the camera's starting attitude from the IMU alone (no vision).
 ``body``     Path B: hold the starting gaze direction relative to the wearer's body.
+``explore``  map: fixate where the map and the pose gain most (runtime.apps.explore), ``dwell_s``
+             (default 1.5 s) after each landing, then choose again.
 ``track``    keep a 2D tracker's target centred (by default the start-up target's clicked
              rectangle, grown to take in its surround), the tracker seeing only the images.
 """
@@ -36,7 +38,7 @@ from typing import Callable
 import numpy as np
 from kinematics.progress import progress_bar
 
-from kinematics import JOINT_NAMES
+from kinematics import JOINT_NAMES, forward_kinematics
 from kinematics.tomlfile import read_toml
 
 from ..gaze import ControllerSettings, GazeController, GazeRefused
@@ -48,6 +50,7 @@ from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
 from ..slam.head_motion_start import point_at_pixel
 from ..slam.system import MonoSLAM
+from .explore import ExploreSettings, choose_fixation, viewing_cone_sr
 from .head_motion import HeadMotionPhase
 from ..vision2d.track import METHODS as TRACK_METHODS
 from ..vision2d.track import make_tracker
@@ -86,7 +89,7 @@ def slam_config(info: RobotInfo) -> SlamConfig:
 
 
 #: What the closed loop's controller may be asked to do.
-TASKS = ("fixate", "saccade", "stabilise", "body", "track")
+TASKS = ("fixate", "saccade", "stabilise", "body", "track", "explore")
 
 #: The default tracked region: the start-up target's clicked rectangle grown about its centre,
 #: so that it takes in the card's edge and the bench's texture around it (the same plane): a
@@ -97,7 +100,8 @@ TRACK_REGION_SCALE = 1.8
 @dataclass(frozen=True)
 class Task:
     """kind : one of :data:`TASKS`. targets : (n, 3) world points, m (fixate, saccade).
-    dwell_s : time on each saccade target before the next. region : track: (x, y, w, h) pixels
+    dwell_s : time on each saccade target before the next (default 2 s), or explore's fixation
+    after each landing (default 1.5 s). region : track: (x, y, w, h) pixels
     in the first frame (default: the start target's rectangle). method : track: the 2D tracker.
     recentre_per_s : stabilise: the gain of Path A's visual outer loop (runtime.apps.recentre),
     1/s; 0 (default) holds the attitude from the IMU alone. start : how SLAM starts: ``target``
@@ -107,7 +111,7 @@ class Task:
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    dwell_s: float = 2.0
+    dwell_s: float | None = None
     region: tuple | None = None
     method: str = "hyperplane"
     recentre_per_s: float = 0.0
@@ -129,6 +133,8 @@ class Task:
             raise ValueError("task saccade needs at least two targets (--targets FILE)")
         if self.method not in TRACK_METHODS:
             raise ValueError(f"track method {self.method!r}: use one of {', '.join(TRACK_METHODS)}")
+        if self.dwell_s is None:
+            object.__setattr__(self, "dwell_s", EXPLORE_DWELL_S if self.kind == "explore" else SACCADE_DWELL_S)
         if not self.dwell_s > 0:
             raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
         if not (math.isfinite(self.recentre_per_s) and self.recentre_per_s >= 0):
@@ -139,8 +145,16 @@ class Task:
 
     @property
     def uses_slam(self) -> bool:
-        return self.kind in ("fixate", "saccade")
+        return self.kind in ("fixate", "saccade", "explore")
 
+
+#: The default time on each saccade target, and on each fixation explore chooses (after landing), s.
+SACCADE_DWELL_S = 2.0
+EXPLORE_DWELL_S = 1.5
+
+#: Explore: a saccade that has not landed this long after its choice is given up, and the next
+#: fixation chosen (SLAM lost on the way, or the wearer's motion keeps the error above landing).
+EXPLORE_GIVE_UP_S = 3.0
 
 #: How SLAM's map can start in the closed loop.
 STARTS = ("target", "head-motion")
@@ -298,6 +312,12 @@ class ClosedLoop:
         self.head_start: HeadMotionPhase | None = None
         self.start_result = None            # the head-motion start's HeadMotionResult, once made
         self._task_t0: float | None = None  # when the task began (the saccades' dwell counts from it)
+        self.explore_settings = ExploreSettings()
+        self.explore_choice = None          # explore: the last ExploreChoice (candidates and scores)
+        self._explore_target: np.ndarray | None = None
+        self._explore_n = -1                # explore: how many fixations chosen, less one
+        self._explore_t = -np.inf           # explore: when the last was chosen, s
+        self._explore_landed_t: float | None = None
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -379,6 +399,48 @@ class ClosedLoop:
         except GazeRefused as e:
             self.log.refusals.append({"t": t, "target": i, "reason": str(e)})
 
+    def _explore(self, obs: Observation) -> None:
+        """Explore: choose the next fixation (runtime.apps.explore) from SLAM's map and the head's
+        reach, and saccade to it; the best candidate the controller accepts (a refused one is
+        skipped). Nothing is chosen while SLAM is lost."""
+        slam, ctl, t = self.slam, self.ctl, obs.t
+        if slam is None or not slam.localised:
+            return
+        self._explore_t = t
+        q = np.asarray(obs.q, float)
+        T_world_mount = slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
+        ch = choose_fixation(self.info.head, self.info.camera, slam.state, T_world_mount, q, slam.cfg.sigma_pixel,
+                             self.explore_settings, map_points_world=slam.world_points())
+        self.explore_choice = ch
+        for k in np.argsort(-ch.score):
+            if not np.isfinite(ch.score[k]):
+                break
+            try:
+                ctl.saccade(ch.points_world[k])
+            except GazeRefused as e:
+                self.log.events.append({"t": t, "event": "explore-skip", "target": ch.points_world[k].tolist(),
+                                        "reason": str(e)})
+                continue
+            self._explore_n += 1
+            self._explore_target = ch.points_world[k].copy()
+            self._explore_landed_t = None
+            self.log.events.append({"t": t, "event": "explore", "target": self._explore_target.tolist(),
+                                    "score": float(ch.score[k]), "pose_info": float(ch.pose_info[k]),
+                                    "visible": int(ch.n_visible[k]), "index": self._explore_n})
+            return
+        # None accepted: hold the present fixation and choose again after EXPLORE_GIVE_UP_S.
+        self._explore_landed_t = None
+
+    def _explore_due(self, t: float) -> bool:
+        """Whether explore chooses again now: ``dwell_s`` after landing, or after giving up a
+        saccade that did not land (or a choice that found nothing); before any choice, as soon as
+        SLAM is localised, then every ``dwell_s``."""
+        if self._explore_target is None:
+            return t - self._explore_t >= self.task.dwell_s
+        if self._explore_landed_t is not None:
+            return t - self._explore_landed_t >= self.task.dwell_s
+        return t - self._explore_t >= EXPLORE_GIVE_UP_S
+
     def _head_motion_start(self, obs: Observation) -> bool:
         """A period of the head-motion start; True at the period SLAM starts (the task begins)."""
         phase = self.head_start
@@ -439,6 +501,10 @@ class ClosedLoop:
                 ctl.body()
             elif task.kind in ("fixate", "saccade"):
                 self._set_target(0, obs.t)
+            elif task.kind == "explore":
+                self._explore(obs)
+        elif task.kind == "explore" and not self.external and i > 1 and self._explore_due(obs.t):
+            self._explore(obs)
         if task.kind == "saccade" and not self.external and i > 1 and self._task_t0 is not None \
                 and obs.t - self._task_t0 >= (self._current + 1) * task.dwell_s:
             self._current += 1
@@ -463,7 +529,7 @@ class ClosedLoop:
         kind = self._kind
         if self.head_start is not None:
             self._basis_t = obs.t          # the start's motion rests on the encoders alone
-        elif kind in ("fixate", "saccade", "hold") and slam is not None:
+        elif kind in ("fixate", "saccade", "explore", "hold") and slam is not None:
             if T_est is not None:
                 self._basis_t = obs.t
         elif kind == "stabilise":
@@ -476,12 +542,17 @@ class ClosedLoop:
             self._basis_t = None
         cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
         if cmd.landed:
+            if task.kind == "explore" and not self.external:
+                self._explore_landed_t = obs.t
             self.log.events.append({"t": obs.t, "event": "landed", "target": "external" if self.external
+                                    else self._explore_n if task.kind == "explore"
                                     else self._current % len(task.targets)})
         q = np.asarray(obs.q, float)
         qd_meas = (q - self._q_prev) / self.dt if i else np.zeros(3)
         self._q_prev = q.copy()
         tgt = task.targets[self._current % len(task.targets)] if len(task.targets) else np.full(3, np.nan)
+        if task.kind == "explore" and self._explore_target is not None:
+            tgt = self._explore_target
         if self.external:
             tgt = self._external_target if self._external_target is not None else np.full(3, np.nan)
         err = math.degrees(cmd.error_rad) if np.isfinite(cmd.error_rad) else float("nan")
@@ -584,6 +655,12 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
             # What the IMU's stamps lag the camera's by, as the filter learnt it (a rig's host
             # stamps both on arrival): worth knowing before trusting either clock.
             summary["imu_clock_offset_ms"] = 1000 * state.t_d
+        if loop.slam.started and loop.slam.localised:
+            # How much of the scene the map covers, seen from where the head ended: the solid
+            # angle of its features' directions (runtime.apps.explore.viewing_cone_sr).
+            Y = loop.slam.world_points()
+            summary["map_features"] = int(len(Y))
+            summary["map_cone_sr"] = viewing_cone_sr(Y, loop.slam.T_world_cam()[:3, 3])
         (out / "slam_stats.json").write_text(json.dumps({"frames": [asdict(s) for s in loop.slam.stats]}, indent=0))
     cmd_rate, meas_rate = log.column("cmd_rate"), log.column("meas_rate")
     summary["peak_cmd_rate_deg_s"] = float(np.degrees(np.abs(cmd_rate).max()))

@@ -177,7 +177,7 @@ class Scenario:
 
 
 #: What the closed loop's controller may be asked to do (runtime.twin.loop.Task).
-TASKS = ("fixate", "saccade", "stabilise", "body", "track")
+TASKS = ("fixate", "saccade", "stabilise", "body", "track", "explore")
 
 _LONG_BENCH = dict(centre_xy=(0.0, -0.75), size=(3.6, 0.7))
 
