@@ -122,8 +122,9 @@ class Task:
             raise ValueError(f"task {self.kind!r} unknown; choose one of {', '.join(TASKS)}")
         if self.start not in STARTS:
             raise ValueError(f"start {self.start!r} unknown; choose one of {', '.join(STARTS)}")
-        if self.start == "head-motion" and self.kind not in ("fixate", "saccade"):
-            raise ValueError(f"--start head-motion starts SLAM: give it with task fixate or saccade, not {self.kind}")
+        if self.start == "head-motion" and self.kind not in ("fixate", "saccade", "explore"):
+            raise ValueError(f"--start head-motion starts SLAM: give it with task fixate, saccade or explore, "
+                             f"not {self.kind}")
         t = np.asarray(self.targets, float).reshape(-1, 3)
         if not np.isfinite(t).all():
             raise ValueError("task targets must be finite world points (x, y, z) m")

@@ -36,8 +36,8 @@ def test_a_still_wearer_gets_a_metric_map_from_the_heads_motion(tmp_path):
     assert np.ptp(np.degrees(pan)) > 15             # the start's motion did happen
 
 
-@pytest.mark.parametrize("task, words", [("stabilise", "with task fixate or saccade"),
-                                         ("body", "with task fixate or saccade")])
+@pytest.mark.parametrize("task, words", [("stabilise", "with task fixate, saccade or explore"),
+                                         ("body", "with task fixate, saccade or explore")])
 def test_head_motion_start_on_a_task_without_slam_is_refused(tmp_path, capsys, task, words):
     code = main(["sim", "run", "--task", task, "--scenario", "workbench-static", "--start", "head-motion",
                  "--seconds", "1", "--out", str(tmp_path / "x")])
