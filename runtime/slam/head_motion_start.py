@@ -32,9 +32,9 @@ import numpy as np
 from scipy.interpolate import BSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from kinematics.camera import CameraIntrinsics, in_image, undistort
+from kinematics.camera import CameraIntrinsics, undistort
 
-from .natural_start import NaturalStart, StartWait, _ray_covariance
+from .natural_start import NaturalStart, StartWait, _ray_covariance, track_forward_backward
 
 
 @dataclass(frozen=True)
@@ -403,13 +403,7 @@ class HeadMotionStart:
             uv = np.full_like(prev, np.nan)
             idx = np.flatnonzero(np.isfinite(prev[:, 0]))
             if len(idx):
-                p0 = prev[idx].astype(np.float32)
-                lk = dict(winSize=(21, 21), maxLevel=3,
-                          criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-                p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, g8, p0, None, **lk)
-                pb, st0, _ = cv2.calcOpticalFlowPyrLK(g8, self._prev, p1, None, **lk)
-                ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (np.linalg.norm(pb - p0, axis=1) < 0.5)
-                ok &= in_image(self.cam, p1.astype(float), margin=4)
+                p1, ok = track_forward_backward(self.cam, self._prev, g8, prev[idx])
                 uv[idx[ok]] = p1[ok]
             alive = np.isfinite(uv[:, 0])
             if alive.sum() < self.s.refill_fraction * max(self._n0, 1):

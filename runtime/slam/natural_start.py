@@ -109,6 +109,19 @@ def _corners(cam: CameraIntrinsics, grey: np.ndarray, s: StartSettings, mask: np
     return np.empty((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
 
 
+def track_forward_backward(cam: CameraIntrinsics, prev8: np.ndarray, cur8: np.ndarray, uv: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Points uv (k, 2) px of the 8-bit image prev8 tracked into cur8 by pyramidal Lucas-Kanade
+    (21 px window, 3 levels): (k, 2) where they went, and (k,) which to keep: found both ways,
+    tracked back to within 0.5 px of where they started, and 4 px inside the image."""
+    lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev8, cur8, uv.astype(np.float32), None, **lk)
+    p0, st0, _ = cv2.calcOpticalFlowPyrLK(cur8, prev8, p1, None, **lk)
+    ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (np.linalg.norm(p0 - uv, axis=1) < 0.5)
+    ok &= in_image(cam, p1.astype(float), margin=4)
+    return p1.astype(float), ok
+
+
 def _ray_covariance(rays: np.ndarray, sigma_along: np.ndarray, sigma_across: np.ndarray) -> np.ndarray:
     """(n, 3, 3) covariances with standard deviation ``sigma_along`` along each unit ray (n, 3) and
     ``sigma_across`` across it (m)."""
@@ -259,12 +272,8 @@ class TwoViewStart:
         if self.ref_frame is None:
             return self._reset(g8, frame, t)
         self._frames += 1
-        lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, g8, self._uv.astype(np.float32), None, **lk)
-        p0, st0, _ = cv2.calcOpticalFlowPyrLK(g8, self._prev, p1, None, **lk)
-        ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (np.linalg.norm(p0 - self._uv, axis=1) < 0.5)
-        ok &= in_image(self.cam, p1.astype(float), margin=4)
-        self._ref_uv, self._uv, self._prev = self._ref_uv[ok], p1[ok].astype(float), g8
+        p1, ok = track_forward_backward(self.cam, self._prev, g8, self._uv)
+        self._ref_uv, self._uv, self._prev = self._ref_uv[ok], p1[ok], g8
         if len(self._uv) < self.s.min_points or self._frames > self.s.max_frames:
             lost = len(self._uv) < self.s.min_points
             w = self._reset(g8, frame, t)
@@ -288,4 +297,4 @@ class TwoViewStart:
 
 
 __all__ = ["DEPTH_NOISE_K", "NaturalStart", "StartSettings", "StartWait", "TwoViewGeometry", "TwoViewStart",
-           "depth_start", "triangulate", "two_view_geometry"]
+           "depth_start", "track_forward_backward", "triangulate", "two_view_geometry"]
