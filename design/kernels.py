@@ -680,35 +680,41 @@ def obb_penetration(cA, RA, hA, cB, RB, hB):
 
 
 @njit(cache=True)
-def _pose_links(axis, origin, q, R_out, p_out):
-    """Link rotations (4, 3, 3) and origins (4, 3) in the mount frame at angles q (3,), link 0 the
-    mount (kinematics.chain.forward_kinematics)."""
-    Rq = np.empty((3, 3))
+def _link_step(i, origin, Rq, R_out, p_out):
+    """Link i + 1's origin and rotation from link i's, its joint's origin and turn Rq (3, 3)."""
+    for r in range(3):
+        p_out[i + 1, r] = p_out[i, r] + (R_out[i, r, 0] * origin[i, 0] + R_out[i, r, 1] * origin[i, 1]
+                                         + R_out[i, r, 2] * origin[i, 2])
+    _matmul3(R_out[i], Rq, R_out[i + 1])
+
+
+@njit(cache=True)
+def _mount_link(R_out, p_out):
+    """Link 0, the mount: no turn, at the origin."""
     for r in range(3):
         for c in range(3):
             R_out[0, r, c] = 1.0 if r == c else 0.0
         p_out[0, r] = 0.0
+
+
+@njit(cache=True)
+def _pose_links(axis, origin, q, R_out, p_out):
+    """Link rotations (4, 3, 3) and origins (4, 3) in the mount frame at angles q (3,), link 0 the
+    mount (kinematics.chain.forward_kinematics)."""
+    Rq = np.empty((3, 3))
+    _mount_link(R_out, p_out)
     for i in range(3):
-        for r in range(3):
-            p_out[i + 1, r] = p_out[i, r] + (R_out[i, r, 0] * origin[i, 0] + R_out[i, r, 1] * origin[i, 1]
-                                             + R_out[i, r, 2] * origin[i, 2])
         _axis_angle(axis[i], q[i], Rq)
-        _matmul3(R_out[i], Rq, R_out[i + 1])
+        _link_step(i, origin, Rq, R_out, p_out)
 
 
 @njit(cache=True)
 def _pose_links_grid(origin, Rg, u, v, w, R_out, p_out):
     """_pose_links at the grid angles (u, v, w), from the joints' rotations Rg (3, steps, 3, 3)
     at the grid angles, made once (the same matrices _axis_angle makes there)."""
-    for r in range(3):
-        for c in range(3):
-            R_out[0, r, c] = 1.0 if r == c else 0.0
-        p_out[0, r] = 0.0
+    _mount_link(R_out, p_out)
     for i in range(3):
-        for r in range(3):
-            p_out[i + 1, r] = p_out[i, r] + (R_out[i, r, 0] * origin[i, 0] + R_out[i, r, 1] * origin[i, 1]
-                                             + R_out[i, r, 2] * origin[i, 2])
-        _matmul3(R_out[i], Rg[i, u if i == 0 else (v if i == 1 else w)], R_out[i + 1])
+        _link_step(i, origin, Rg[i, u if i == 0 else (v if i == 1 else w)], R_out, p_out)
 
 
 @njit(cache=True)
