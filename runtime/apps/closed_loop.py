@@ -457,10 +457,10 @@ class ClosedLoop:
         self.start_result = r
         self.head_start = None
         self._task_t0 = obs.t
-        self._imu_pending = []
         if self.task.kind == "fixate" and len(self.task.targets) == 0:
-            # Fixate what the person clicked in the first image, else what the camera looked at.
-            tgt = self.start_target(obs) if callable(self.start_target) else self.start_target
+            # Fixate what the person clicked in the first image (start() took the clicks), else
+            # what the camera looked at.
+            tgt = self.start_target
             uv = (np.asarray(tgt.uv, float)[:4].mean(axis=0) if tgt is not None
                   else np.array([self.info.camera.cx, self.info.camera.cy]))
             p = point_at_pixel(self.info.camera, r, uv)
@@ -588,7 +588,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     (the scenario); ``task_info`` : extra keys for task.toml. ``session_log`` : also session.mcap
     (images, IMU, joints, SLAM's pose and map, target, prompts, events; runtime.session_log).
     """
-    from .evaluate import evaluate
+    from .evaluate import evaluate, start_map_scale
     from .report import write_outputs
 
     out = Path(out)
@@ -677,8 +677,6 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
         write_trajectory(out / "groundtruth.txt", times, T_true, header="true camera-to-world poses (optical frame)")
         summary.update(evaluate(log, T_true, truth.landmarks(), loop.task, info.camera, loop.region_uv, out))
         if loop.start_result is not None and start_depth is not None:
-            from .evaluate import start_map_scale
-
             summary.update(start_map_scale(loop.start_result.start, start_depth))
     with open(out / "joints.csv", "w", newline="") as fh:
         w = csv.writer(fh)

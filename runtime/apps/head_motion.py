@@ -95,8 +95,7 @@ class HeadMotionPhase:
                              f"{math.degrees(plan.amplitude_rad):.0f} deg pan and elevation motion (it lies on the "
                              f"axes): no baseline to fix the scale; use a target (target.toml) or a saved map")
         self.head, self.camera, self.plan = head, camera, plan
-        self.q0 = np.asarray(q0, float).copy()
-        self.path = waypoints(head, self.q0, plan.amplitude_rad)
+        self.path: np.ndarray | None = None    # the motion's waypoints, from where it begins
         self.state = "waiting"
         self.said: list[tuple[float, str]] = []
         self._imu: list[np.ndarray] = []
@@ -110,10 +109,10 @@ class HeadMotionPhase:
         if not self.said or self.said[-1][1] != text:
             self.said.append((t, text))
 
-    def _still(self, t: float) -> tuple[bool, float]:
-        """Whether the last ``still_s`` of gyro samples are still, and their largest 0.1 s mean rate."""
-        rows = np.vstack(self._imu) if self._imu else np.zeros((0, 7))
-        rows = rows[rows[:, 0] > t - self.plan.still_s]
+    def _still(self) -> tuple[bool, float]:
+        """Whether the gyro samples kept while waiting (the last ``still_s``) are still, and their
+        largest 0.1 s mean rate."""
+        rows = self.imu_rows
         if len(rows) < 5 or rows[-1, 0] - rows[0, 0] < 0.8 * self.plan.still_s:
             return False, float("nan")
         k = np.floor((rows[:, 0] - rows[0, 0]) / 0.1).astype(int)
@@ -123,7 +122,8 @@ class HeadMotionPhase:
 
     @property
     def imu_rows(self) -> np.ndarray:
-        """(k, 7) the IMU rows the phase has seen since it last began waiting."""
+        """(k, 7) the IMU rows the phase keeps: while waiting, the last ``still_s``; from the
+        motion's start on, all since then."""
         return np.vstack(self._imu) if self._imu else np.zeros((0, 7))
 
     def step(self, obs, ctl) -> HeadMotionResult | None:
@@ -134,13 +134,18 @@ class HeadMotionPhase:
             self._imu.append(rows)
         t = float(obs.t)
         if self.state == "waiting":
+            if self._imu:
+                # Only the stillness window counts while waiting: a wearer who never keeps still
+                # must not grow the phase's memory or its work each period.
+                kept = self.imu_rows
+                self._imu = [kept[kept[:, 0] > t - self.plan.still_s]]
             if self._t_first is None:
                 self._t_first = t
             has_imu = bool(self._imu)
             if not has_imu and t - self._t_first < self.plan.still_s:
                 ctl.hold()                 # an IMU's first samples come with the first step
                 return None
-            still, peak = self._still(t) if has_imu else (True, float("nan"))
+            still, peak = self._still() if has_imu else (True, float("nan"))
             if has_imu and not still:
                 if np.isfinite(peak):
                     self._say(t, f"head-motion start: waiting for the wearer to keep still (turning at "
@@ -151,16 +156,13 @@ class HeadMotionPhase:
             if obs.image is None or not obs.fresh_image:
                 return None
             if has_imu:
-                f = np.vstack(self._imu)
-                f = f[f[:, 0] > t - self.plan.still_s, 4:7].mean(axis=0)
-                self._R_world_cam0 = level_attitude(f)
+                self._R_world_cam0 = level_attitude(self.imu_rows[:, 4:7].mean(axis=0))
             else:
                 self._say(t, "head-motion start: no IMU: the wearer's stillness is not checked and the world is "
                              "the first camera's frame (not levelled)")
             self._estimator = HeadMotionStart(self.camera, self.plan.points)
             self._k = 0
-            self.q0 = np.asarray(obs.q, float).copy()
-            self.path = waypoints(self.head, self.q0, self.plan.amplitude_rad)
+            self.path = waypoints(self.head, obs.q, self.plan.amplitude_rad)
             self._add(obs)
             ctl.slave(self.path[0])
             self.state = "moving"

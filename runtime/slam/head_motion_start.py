@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, undistort
 
-from .natural_start import NaturalStart, StartWait, _ray_covariance, track_forward_backward
+from .natural_start import NaturalStart, StartSettings, StartWait, _corners, _ray_covariance, track_forward_backward
 
 
 @dataclass(frozen=True)
@@ -145,19 +145,6 @@ class GyroTurns:
         sl = self._slerp(np.zeros((3, 3)) if E is None else np.asarray(E, float))
         tt = np.clip(np.asarray(t, float) + delta_s, self.t[0], self.t[-1])
         return (sl([np.clip(self.t0 + delta_s, self.t[0], self.t[-1])]).inv() * sl(tt)).as_matrix()
-
-
-def gyro_turns(rows: np.ndarray, t_frames: np.ndarray) -> np.ndarray:
-    """(F, 3, 3) the camera's turn since the first frame at each frame time (F,) s from gyro
-    rows (k, 7): :class:`GyroTurns` at those times."""
-    t_frames = np.asarray(t_frames, float)
-    return GyroTurns(rows, t_frames[0]).at(t_frames)
-
-
-def camera_motion(T_mount_cam: np.ndarray) -> np.ndarray:
-    """(F, 4, 4) each frame's camera in the first camera's frame, the mount held still:
-    ``inv(T_mount_cam[0]) @ T_mount_cam[i]`` for (F, 4, 4) head-model poses."""
-    return np.linalg.inv(T_mount_cam[0])[None] @ T_mount_cam
 
 
 def baseline_m(T_mount_cam: np.ndarray) -> float:
@@ -379,15 +366,14 @@ class HeadMotionStart:
         return list(self._t)
 
     def _detect(self, g8: np.ndarray, avoid: np.ndarray) -> np.ndarray:
+        """(k, 2) new corners of g8, none within the corner spacing of ``avoid`` (m, 2) px."""
         s = self.s
         mask = np.full(g8.shape, 255, np.uint8)
         r = int(round(s.corner_min_distance_px * self.cam.width / 640.0))
         for u, v in avoid:
             cv2.circle(mask, (int(round(u)), int(round(v))), r, 0, -1)
-        pts = cv2.goodFeaturesToTrack(g8.astype(np.float32), maxCorners=s.corners, qualityLevel=s.corner_quality,
-                                      minDistance=s.corner_min_distance_px * self.cam.width / 640.0,
-                                      mask=mask & (_border_mask(self.cam, g8.shape)), blockSize=5)
-        return np.empty((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
+        return _corners(self.cam, g8, StartSettings(corners=s.corners, corner_min_distance_px=s.corner_min_distance_px),
+                        mask, quality=s.corner_quality)
 
     def add(self, grey: np.ndarray, t: float, T_mount_cam: np.ndarray) -> None:
         """One frame (H, W) grey at time t (s), the camera's pose on the mount (4, 4) from the
@@ -458,7 +444,6 @@ class HeadMotionStart:
         good = np.isfinite(xy).all(axis=1)
         fi, k, xy = fi[good], k[good], xy[good]
         t = np.array(self._t)
-        F = len(t)
         tau = (t - t[0]) / max(t[-1] - t[0], 1e-9)
         gyro, rot_order = None, s.rotation_order
         if gyro_rows is not None and len(gyro_rows) >= 2:
@@ -525,14 +510,6 @@ class HeadMotionStart:
         return HeadMotionResult(ns, uv[0, cols][ok], T_world_cam0, T, base, drift_m, drift_rad, rms_px, len(cols))
 
 
-def _border_mask(cam: CameraIntrinsics, shape) -> np.ndarray:
-    """(H, W) uint8: 255 away from the image's border (20 px at 640 px width), 0 near it."""
-    b = int(round(20 * cam.width / 640.0))
-    m = np.zeros(shape, np.uint8)
-    m[b:-b, b:-b] = 255
-    return m
-
-
 def point_at_pixel(cam: CameraIntrinsics, res: HeadMotionResult, uv: np.ndarray, neighbours: int = 8) -> np.ndarray:
     """(3,) the world point at pixel ``uv`` (2,) of the first frame (a person's click): where its
     ray meets the plane of the mapped points nearest it in that image (their median depth along
@@ -554,5 +531,5 @@ def point_at_pixel(cam: CameraIntrinsics, res: HeadMotionResult, uv: np.ndarray,
     return o + ray * float(np.median((Y - o) @ ray))
 
 
-__all__ = ["HeadMotionResult", "HeadMotionSettings", "GyroTurns", "HeadMotionStart", "baseline_m", "camera_motion", "gyro_turns",
+__all__ = ["HeadMotionResult", "HeadMotionSettings", "GyroTurns", "HeadMotionStart", "baseline_m",
            "point_at_pixel"]

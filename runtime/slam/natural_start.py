@@ -96,15 +96,17 @@ class StartWait:
     reason: str
 
 
-def _corners(cam: CameraIntrinsics, grey: np.ndarray, s: StartSettings, mask: np.ndarray | None = None) -> np.ndarray:
-    """(k, 2) Shi-Tomasi corners, strongest first, 20 px from the border (at 640 px width)."""
+def _corners(cam: CameraIntrinsics, grey: np.ndarray, s: StartSettings, mask: np.ndarray | None = None,
+             quality: float = 0.01) -> np.ndarray:
+    """(k, 2) Shi-Tomasi corners, strongest first, 20 px from the border (at 640 px width), none
+    weaker than ``quality`` times the strongest, none where ``mask`` (H, W) uint8 is 0."""
     scale = cam.width / 640.0
     border = int(round(20 * scale))
     m = np.zeros(grey.shape, np.uint8)
     m[border:-border, border:-border] = 255
     if mask is not None:
         m &= mask
-    pts = cv2.goodFeaturesToTrack(np.asarray(grey, np.float32), maxCorners=s.corners, qualityLevel=0.01,
+    pts = cv2.goodFeaturesToTrack(np.asarray(grey, np.float32), maxCorners=s.corners, qualityLevel=quality,
                                   minDistance=s.corner_min_distance_px * scale, mask=m, blockSize=5)
     return np.empty((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
 

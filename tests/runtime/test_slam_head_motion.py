@@ -16,7 +16,7 @@ from kinematics import forward_kinematics
 from kinematics.camera import default_camera
 from kinematics.geometry import reference_head
 from runtime.apps.head_motion import CORNERS, HeadMotionPhase, HeadMotionPlan, level_attitude, waypoints
-from runtime.slam.head_motion_start import HeadMotionSettings, HeadMotionStart, gyro_turns, point_at_pixel
+from runtime.slam.head_motion_start import GyroTurns, HeadMotionSettings, HeadMotionStart, point_at_pixel
 from runtime.slam.natural_start import StartWait
 
 CAM = default_camera()
@@ -187,7 +187,7 @@ def test_gyro_turns_integrate_a_known_rate():
     t = np.arange(0, 2, 0.005)
     rows = np.column_stack([t, np.tile([0.1, -0.2, 0.3], (len(t), 1)), np.zeros((len(t), 3))])
     tf = np.array([0.2, 0.7, 1.5])
-    R = gyro_turns(rows, tf)
+    R = GyroTurns(rows, tf[0]).at(tf)
     want = Rotation.from_rotvec(np.outer(tf - tf[0], [0.1, -0.2, 0.3])).as_matrix()
     assert np.allclose(R, want, atol=1e-9)
 
