@@ -918,6 +918,17 @@ def _session_log_option(p: argparse.ArgumentParser, when: str = "") -> None:
                         "Foxglove or any MCAP reader); the other files are the same")
 
 
+def _start_option(p: argparse.ArgumentParser, fixate_default: str) -> None:
+    """--start: how the closed loop's SLAM starts (runtime.apps.closed_loop.STARTS)."""
+    from runtime.apps.closed_loop import STARTS
+
+    p.add_argument("--start", choices=list(STARTS), default="target",
+                   help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion "
+                        "(no target: once the wearer keeps still, the head goes twice round a box in pan and "
+                        "elevation, and that known motion fixes the scale; targets are then in its world frame: "
+                        f"origin at the first camera, z up, x ahead; fixate's default target is {fixate_default})")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from runtime.apps.closed_loop import TASKS
     from runtime.twin.scenarios import SCENARIOS
@@ -1042,7 +1053,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--click-error", type=_click_error, default=2.5, metavar="PX",
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
-    run.add_argument("--start", choices=["target", "head-motion"], default="target", help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion (no target: the wearer keeps still while the head turns out and back in pan and elevation, and that known motion fixes the scale; targets are then in its world frame: origin at the first camera, z up, x ahead; fixate's default target is the clicked point)")
+    _start_option(run, "the clicked point")
     run.add_argument("--out", required=True, help="output directory")
     _session_log_option(run)
     _twin_options(run, SCENARIOS)
@@ -1077,7 +1088,7 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--targets", help="TOML file: targets = [[x, y, z], ...] (world, m), optional dwell_s")
     rr.add_argument("--dwell", type=_positive, default=None,
                      help="seconds on each saccade target (default 2), or on each fixation explore chooses (default 1.5)")
-    rr.add_argument("--start", choices=["target", "head-motion"], default="target", help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion (no target: the wearer keeps still while the head turns out and back in pan and elevation, and that known motion fixes the scale; targets are then in its world frame: origin at the first camera, z up, x ahead; fixate's default target is the start target's clicked centre, else the image's centre)")
+    _start_option(rr, "the start target's clicked centre, else the image's centre")
     rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
                     help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")

@@ -148,11 +148,12 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
     times = log.times
     after = times >= times[0] + 1.0
     targets = log.column("target") if task.kind in ("fixate", "saccade") else None
-    if task.uses_slam and getattr(task, "start", "target") == "head-motion":
+    if task.uses_slam and task.start == "head-motion":
         s.update(_head_motion_scores(times, np.array([r.T_est for r in log.rows]), T_true))
-        if targets is not None and "T_true_est" in s:
+        A = s.pop("T_true_est", None)
+        if targets is not None and A is not None:
             # The targets are in the start's world: the truth's through the start-frame alignment.
-            A = np.asarray(s.pop("T_true_est"))
+            A = np.asarray(A)
             targets = targets @ A[:3, :3].T + A[:3, 3]
     elif task.uses_slam:
         T_est = np.array([r.T_est for r in log.rows])

@@ -1,6 +1,6 @@
-"""The head-motion start of the closed loop: wait for the wearer to be still, turn the head out
-and back in pan and in elevation at the controlled-motion limit, and start SLAM metric from what
-the camera saw through that known motion (``runtime.slam.head_motion_start``).
+"""The head-motion start of the closed loop: wait for the wearer to be still, take the head twice
+round a box in pan and elevation (:data:`CORNERS`) at the controlled-motion limit, and start SLAM
+metric from what the camera saw through that known motion (``runtime.slam.head_motion_start``).
 
 Only what a real wearable has is read: the images, the encoders (the head model gives the
 camera's pose on the mount at their angles), and the IMU (the wearer's stillness, and gravity to
