@@ -8,7 +8,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from .search import TEMPLATE_SIZE, extract_template
+from .appearance import TEMPLATE_SIZE, extract_template
 
 #: Images at least this wide are searched for corners at half resolution (find_new_corners).
 HALF_RESOLUTION_FROM_WIDTH = 320

@@ -23,7 +23,7 @@ from kinematics.camera import CameraIntrinsics
 
 from .features import FEATURE_DIMS
 from .state import State
-from .templates import MapFeature
+from .map_feature import MapFeature
 
 FORMAT = "wvr-slam-map"
 VERSION = 1

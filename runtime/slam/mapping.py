@@ -16,14 +16,15 @@ from .corners import min_template_std, new_features, noise_sigma
 from .features import INVERSE_DEPTH, POINT, inverse_depth
 from .features import particles as depth_init
 from .filter import FeatureNotMeasurable, add_inverse_depth_features, add_point_feature, point_conversions
-from .normal_fit import fit_normal_kernel
+from .appearance.normals import fit_normal_kernel
 from .measurement import predict_points, predict_uv, ray_from_pixel
 from .motion import f_and_dfdx
 from .quaternion import quat_to_rotation
 from .records import FrameStats
-from .search import search
+from .appearance import search
 from .state import POSE_DIM, SlamNumericalError
-from .templates import MapFeature, first_view_patch, local_plane_normal, patch_half
+from .appearance import first_view_patch, local_plane_normal, patch_half
+from .map_feature import MapFeature
 from .views import SlamMap, _from_first_view
 
 

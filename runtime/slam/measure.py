@@ -14,14 +14,14 @@ from kinematics.camera import CameraIntrinsics
 from .config import MapSettings, SlamConfig
 from .filter import FrameUpdate, innovation_covariances, innovation_nis
 from .guided import guided_regions
-from .matching import match_features
+from .appearance import match_features
 from .measurement import Prediction, predict, predict_uv
 from .motion import f_and_dfdx_dfdn, noise_covariance
 from .ransac import one_point_ransac
 from .records import FrameStats, SearchView
 from .startup import RefinedTarget, corners_by_edges
 from .state import State
-from .templates import MapFeature
+from .map_feature import MapFeature
 from .views import SlamMap, warped
 
 #: Grid over the image for spreading the measured features (columns, rows).

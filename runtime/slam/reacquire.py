@@ -13,7 +13,7 @@ from kinematics.transforms import rotation_angle
 
 from .config import MapSettings
 from .filter import innovation_covariances, innovation_nis
-from .matching import match_features
+from .appearance import match_features
 from .measurement import predict
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .startup import (PoseHypothesis, RefinedTarget, SlamStartError, find_quadrilateral, locate_target,

@@ -25,10 +25,10 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics, project, undistort
 from kinematics.transforms import so3_exp
 
+from .appearance.search import global_matches
 from .startup import pose_jacobians
 
 
-FLAT_VARIANCE = 4.0      # grey levels^2: windows flatter than a 2-level standard deviation
 CHI2_2DOF_99 = 9.21      # a match's gate in refine_pose: chi-square, 2 dof, 99%
 
 
@@ -113,40 +113,6 @@ def refine_pose(cam: CameraIntrinsics, Y: np.ndarray, Y_cov: np.ndarray, uv: np.
 def _nearest(cam: CameraIntrinsics, c: np.ndarray, y: np.ndarray, R_world_cam: np.ndarray, r: np.ndarray) -> np.ndarray:
     p = project(cam, ((y - r) @ R_world_cam)[None])[0]
     return c[int(np.argmin(np.linalg.norm(c - p, axis=1)))]
-
-
-def global_matches(image: np.ndarray, templates: list[np.ndarray], max_score: float = 0.2, per_template: int = 4
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The best whole-image matches of each template in a grey float32 image.
-
-    A small corner template is rarely unique in a cluttered scene, so up to ``per_template``
-    separated peaks scoring at most ``max_score`` (zero-mean normalised SSD, as in search.py)
-    are kept, and PnP-RANSAC decides. Returns uv (m, 2) px of the template centres and
-    which (m,) template each belongs to.
-    """
-    img = image.astype(np.float32, copy=False)
-    if not templates:
-        return np.zeros((0, 2)), np.zeros(0, np.intp)
-    half = templates[0].shape[0] // 2
-    # OpenCV's normalised score is rounding noise where the window is flat (a plain sheet, a
-    # black frame), and can reach 1 there: such windows cannot hold a feature and are excluded.
-    size = (2 * half + 1, 2 * half + 1)
-    mean = cv2.boxFilter(img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
-    sq = cv2.boxFilter(img * img, -1, size, normalize=True, borderType=cv2.BORDER_ISOLATED)
-    var = (sq - mean * mean)[half:img.shape[0] - half, half:img.shape[1] - half]
-    flat = var < FLAT_VARIANCE
-    uv, owner = [], []
-    for i, t in enumerate(templates):
-        ncc = cv2.matchTemplate(img, t.astype(np.float32), cv2.TM_CCOEFF_NORMED)
-        ncc[flat | ~np.isfinite(ncc)] = -1.0
-        for _ in range(per_template):
-            _, best, _, (u, v) = cv2.minMaxLoc(ncc)
-            if 2.0 * (1.0 - best) > max_score:
-                break
-            uv.append((u + half, v + half))
-            owner.append(i)
-            ncc[max(v - 2 * half, 0):v + 2 * half + 1, max(u - 2 * half, 0):u + 2 * half + 1] = -1.0
-    return np.array(uv, float).reshape(-1, 2), np.array(owner, np.intp)
 
 
 def relocalise(image: np.ndarray, templates: list[np.ndarray], Y: np.ndarray, cam: CameraIntrinsics,

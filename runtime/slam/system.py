@@ -63,11 +63,12 @@ from .mapping import FeatureIds, ImageNoise, cap_victims, stay_in_view
 from .prior import camera_prior, pose_covariance, restart_at
 from .quaternion import quat_from_rotation, quat_to_rotation
 from .records import FrameStats, MapView, SearchView, TrackingStatus
-from .search import extract_template
+from .appearance import extract_template
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, print_contrast, start_hypotheses
 from .filter import FeatureNotMeasurable
 from .state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
-from .templates import MapFeature, first_view_patch, patch_half
+from .appearance import first_view_patch, patch_half
+from .map_feature import MapFeature
 from .track import Track
 from .views import SlamMap, warped
 

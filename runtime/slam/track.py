@@ -25,7 +25,7 @@ from .records import FrameStats, SearchView, TrackingStatus
 from .relocalisation import Relocaliser
 from .startup import PoseHypothesis, RefinedTarget
 from .state import SlamNumericalError, State
-from .templates import MapFeature
+from .map_feature import MapFeature
 from .views import SlamMap
 
 

@@ -17,7 +17,7 @@ from .measurement import Prediction
 from .quaternion import quat_to_rotation
 from .records import FrameStats, SearchView
 from .state import State
-from .templates import MapFeature
+from .map_feature import MapFeature
 
 
 @compiled_kernel()

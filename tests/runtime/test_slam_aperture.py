@@ -8,7 +8,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from runtime.slam.templates import MAX_NOISE_ELONGATION, MapFeature, match_noise_shape
+from runtime.slam.appearance.patch import MAX_NOISE_ELONGATION, match_noise_shape
+from runtime.slam.map_feature import MapFeature
 
 T = 15
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from runtime.slam.corners import min_template_std, new_features, noise_sigma
-from runtime.slam.search import extract_template, search
+from runtime.slam.appearance import extract_template, search
 
 
 def scene(rng, size=(240, 320)):

@@ -11,7 +11,7 @@ import slam_testing as st
 from runtime.sequence import Target
 from runtime.slam.config import DEFAULT_CONFIG, MapSettings
 from runtime.slam.system import MonoSLAM
-from runtime.slam.templates import MapFeature
+from runtime.slam.map_feature import MapFeature
 
 CAM = st.PINHOLE
 RECT = st.rectangle(0.21, 0.15)

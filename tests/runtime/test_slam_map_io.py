@@ -25,7 +25,7 @@ from runtime.slam.filter import convert_to_point
 from runtime.slam.map_io import MapFileError, load_map, save_map
 from runtime.slam.state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED
 from runtime.slam.system import MonoSLAM
-from runtime.slam.templates import MapFeature
+from runtime.slam.map_feature import MapFeature
 
 CAM = su.CAM
 #: What a saved map keeps of each feature (the rest is the session's own: cached rays, the last

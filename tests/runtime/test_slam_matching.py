@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 
 from kinematics.camera import default_camera
-from runtime.slam.matching import match_features
-from runtime.slam.search import extract_template
-from runtime.slam.templates import MapFeature
+from runtime.slam.appearance import match_features
+from runtime.slam.appearance import extract_template
+from runtime.slam.map_feature import MapFeature
 
 
 def textured(seed: int, size=(480, 640)) -> np.ndarray:
@@ -51,7 +51,7 @@ def test_the_scores_inside_the_ellipse_are_opencvs_zncc_and_flat_windows_are_lef
     """The compiled search's scores against an independent ZNCC, OpenCV's TM_CCOEFF_NORMED over
     the ellipse's box: equal (2 (1 - ZNCC)) at every position inside a tilted ellipse whose
     window is not flat, and no score outside it or on a flat window."""
-    from runtime.slam.matching import FLAT_VARIANCE, _zncc_in_ellipse
+    from runtime.slam.appearance.zncc import FLAT_VARIANCE, _zncc_in_ellipse
 
     for seed in range(3):
         img = textured(seed, (240, 320))
@@ -83,7 +83,7 @@ def test_the_coarse_to_fine_search_scores_the_exhaustive_best_the_same_from_a_fr
     tilted 3-sigma ellipses of 400-1500 px, each holding the template's content twice (once with
     noise, a weaker rival): the same best position and score, to the bit, and every score it
     computes equal to the exhaustive one there, at under a fifth of the positions."""
-    from runtime.slam.matching import _best_in_grid, _zncc_coarse_to_fine, _zncc_in_ellipse
+    from runtime.slam.appearance.zncc import _best_in_grid, _zncc_coarse_to_fine, _zncc_in_ellipse
 
     rng = np.random.default_rng(7)
     fractions = []
@@ -122,7 +122,7 @@ def test_a_level_valley_is_searched_exhaustively():
     """An edge's template in an image of the edge with noise: its scores along the edge are level
     (a coarse-to-fine descent would stop at a local best), so the search is the exhaustive
     one, every score of the ellipse, unless the region is large; a distinct feature's is not."""
-    from runtime.slam.matching import (COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX, _best_in_grid,
+    from runtime.slam.appearance.zncc import (COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX, _best_in_grid,
                                        _zncc_coarse_to_fine, _zncc_in_ellipse)
 
     rng = np.random.default_rng(3)
@@ -153,7 +153,7 @@ def test_a_level_valley_is_searched_exhaustively():
 
 def _refined_twice(moved: np.ndarray, tpl: np.ndarray, start) -> tuple[np.ndarray, np.ndarray]:
     """The sub-pixel refinement from ``start`` after 10 iterations (the search's) and after 40."""
-    from runtime.slam.matching import AFFINE_DAMPING, refine_affine_kernel
+    from runtime.slam.appearance.refine import AFFINE_DAMPING, refine_affine_kernel
 
     out = []
     for iterations in (10, 40):

@@ -1,4 +1,4 @@
-"""A natural feature's plane normal fitted to its looks (normal_fit.fit_normal_kernel), against a
+"""A natural feature's plane normal fitted to its looks (appearance.normals.fit_normal_kernel), against a
 ray-cast textured plane whose normal is known."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ import numpy as np
 
 import slam_testing as st
 from kinematics.camera import lens_kernel_args, unproject
-from runtime.slam.normal_fit import candidate_normals, fit_normal_kernel, normal_scores_kernel
-from runtime.slam.templates import MapFeature, first_view_patch, patch_half
+from runtime.slam.appearance.normals import candidate_normals, fit_normal_kernel, normal_scores_kernel
+from runtime.slam.appearance import first_view_patch, patch_half
+from runtime.slam.map_feature import MapFeature
 
 CAM = st.PINHOLE
 T = 15

@@ -260,7 +260,7 @@ def test_the_tracker_votes_by_each_features_record():
     this frame votes ``known_vote``."""
     from runtime.slam.config import MapSettings
     from runtime.slam.measure import Measurement
-    from runtime.slam.templates import MapFeature
+    from runtime.slam.map_feature import MapFeature
 
     measurement = Measurement(None, MapSettings(), 1.0, 0, None)
     records = [(1, 0), (60, 60), (10, 5), (4, 1)]

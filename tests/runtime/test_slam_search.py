@@ -9,8 +9,9 @@ import pytest
 
 import slam_testing as st
 from runtime.slam.corners import HALF_RESOLUTION_FROM_WIDTH, find_new_corners, grey, new_features
-from runtime.slam.search import extract_template, search
-from runtime.slam.templates import MapFeature, first_view_patch, local_plane_normal, patch_half, warped_template
+from runtime.slam.appearance import extract_template, search
+from runtime.slam.appearance import first_view_patch, local_plane_normal, patch_half, warped_template
+from runtime.slam.map_feature import MapFeature
 
 
 def textured(seed=0, size=(240, 320)):

@@ -9,46 +9,13 @@ import math
 
 import numpy as np
 
-from .kernels import compiled_kernel
-from .matching import FLAT_VARIANCE
-from .template_warp import _template_from_corners
-from .templates import plane_corners_kernel
+from ..kernels import compiled_kernel
+from .plane import plane_corners_kernel
+from .warp import _template_from_corners
+from .zncc import zncc_at
 
 
-@compiled_kernel()
-def _zncc_at(grey, tpl, u, v):
-    """``2 (1 - ZNCC)`` of the (t, t) template ``tpl`` against the window of ``grey`` centred on
-    the integer pixel (u, v); 2 when either is flat or the window leaves the image."""
-    H, W = grey.shape
-    t = tpl.shape[0]
-    h = t // 2
-    if u - h < 0 or v - h < 0 or u + h >= W or v + h >= H:
-        return 2.0
-    n = t * t
-    mt = 0.0
-    mw = 0.0
-    for b in range(t):
-        for a in range(t):
-            mt += tpl[b, a]
-            mw += grey[v - h + b, u - h + a]
-    mt /= n
-    mw /= n
-    stw = 0.0
-    stt = 0.0
-    sww = 0.0
-    for b in range(t):
-        for a in range(t):
-            dt = tpl[b, a] - mt
-            dw = grey[v - h + b, u - h + a] - mw
-            stw += dt * dw
-            stt += dt * dt
-            sww += dw * dw
-    if stt < 1e-9 or sww < FLAT_VARIANCE * n:
-        return 2.0
-    return 2.0 * (1.0 - stw / math.sqrt(stt * sww))
-
-
-@compiled_kernel(plane_corners_kernel, _template_from_corners, _zncc_at)
+@compiled_kernel(plane_corners_kernel, _template_from_corners, zncc_at)
 def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, normals):
     """The score ``2 (1 - ZNCC)`` (k,) of the feature's first-view patch warped into the current
     view by the plane through ``y`` with each of ``normals`` (k, 3), centred on the feature's
@@ -68,7 +35,7 @@ def normal_scores_kernel(grey, patch, t, rays0, r0, y, r, R, model, lens, z, nor
         # the image window about the match's pixel: only the plane's shape is compared.
         tpl, inside = _template_from_corners(patch, corners, t, cu - h - (z[0] - zu), cv - h - (z[1] - zv))
         if inside:
-            out[c] = _zncc_at(grey, tpl, zu, zv)
+            out[c] = zncc_at(grey, tpl, zu, zv)
     return out
 
 

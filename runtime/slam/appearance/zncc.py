@@ -1,29 +1,9 @@
-"""The frame's active search over all the features it measures at once (paper, section 4.1), in
-one compiled pass: each feature's template predicted for the current view by the homography its
-plane induces (templates.py explains the geometry) and matched by zero-mean normalised
-cross-correlation at every pixel inside its 3-sigma ellipse, with a parabolic sub-pixel fit.
-
-The score is ``2 (1 - ZNCC)`` as in search.py (0 for identical patches up to gain and offset,
-2 for unrelated ones); a warped template that matches nothing is retried as first seen (the
-plane guess may be wrong). The templates are warped in one compiled pass and every feature is
-searched, matched and refined in another (a call per frame, not per feature: the per-feature
-calls into OpenCV and back cost more than the correlation). The correlation is computed only
-inside each ellipse, a row's chord at a time; windows too flat to hold a match are excluded by
-their variance. Templates 11 px or wider (640 x 480 images) are searched coarse to fine: one
-pyramid level picks the peaks, a descent at every pixel finds each one's best (half the time;
-an edge's level valley is still searched exhaustively).
-
-The best position is refined to sub-pixel precision by Gauss-Newton on the template under an
-affine warp about its centre (Lucas-Kanade, inverse compositional; the shape is damped towards
-the prediction): a parabola through the correlation peak errs by a tenth of a pixel or more with
-the sub-pixel phase, and a template predicted with a slightly wrong plane or pose, if only
-translated, is pulled off its feature by a few tenths, a bias that grows as the view leaves the
-first one (the twin's tracks measured against their true projections; benchmarks/NOTES.md).
-
-The templates' warp is in template_warp.py; the plane a natural feature's warp uses starts as a
-guess (facing its first view) and, as the view turns, is fitted to the feature's looks
-(normal_fit.py).
-"""
+"""Zero-mean normalised cross-correlation (ZNCC), the one score of every appearance match:
+``2 (1 - ZNCC)``, 0 for identical patches up to a gain and offset (lighting changes), 2 for
+unrelated ones, 4 for inverted ones. The scores of a template at every pixel of an ellipse (a
+row's chord at a time, from the region's own integral images; coarse to fine for wide
+templates), at one pixel (the plane fit's), and the best of a grid with the one parabolic
+sub-pixel step."""
 
 from __future__ import annotations
 
@@ -31,19 +11,11 @@ import math
 
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, lens_kernel_args
-
-from .kernels import compiled_kernel
-from .quaternion import quat_to_rotation
-from .search import parabola_offset
-from .template_warp import warp_kernel
-from .templates import MapFeature
+from ..kernels import compiled_kernel
 
 #: A window flatter than this grey-level variance cannot hold a match (ZNCC is noise there).
 FLAT_VARIANCE = 4.0
-#: The weight of the sub-pixel refinement's prior on the template's shape, the predicted one
-#: (affine Gauss-Newton; larger: closer to translation only).
-AFFINE_DAMPING = 1.0
+
 #: Templates this wide or wider are searched coarse to fine (their half-size template, at least
 #: 5 x 5, still picks the peaks; a 4 x 4 one misses about 1 in 600 matches).
 COARSE_MIN_TEMPLATE = 11
@@ -61,9 +33,16 @@ COARSE_LEVEL_MOST = 8
 VALLEY_EXHAUSTIVE_MAX_PX = 6000
 
 
+@compiled_kernel()
+def parabola_offset(a: float, b: float, c: float) -> float:
+    """Offset of the extremum of a parabola through (-1, a), (0, b), (1, c), clamped to +-0.5:
+    the sub-pixel step of a best score ``b`` between its neighbours' ``a`` and ``c``."""
+    d = a - 2 * b + c
+    return 0.0 if abs(d) < 1e-12 else min(max(0.5 * (a - c) / d, -0.5), 0.5)
+
 
 @compiled_kernel()
-def _zero_mean_into(tpl, T):
+def zero_mean_into(tpl, T):
     """``T`` (t, t) <- the template ``tpl`` less its mean (in ``T``'s precision); returns the
     sum of ``T``'s squares."""
     t = tpl.shape[0]
@@ -117,7 +96,7 @@ def _score_from_sums(corr, tn2, ii, ii2, i, j, t):
     return _score(corr, tn2, sw, sw2, t * t)
 
 
-@compiled_kernel(_zero_mean_into, _region_integrals, _score_from_sums, fastmath={"contract", "reassoc"})
+@compiled_kernel(zero_mean_into, _region_integrals, _score_from_sums, fastmath={"contract", "reassoc"})
 def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     """The scores ``2 (1 - ZNCC)`` (nv, nu) of the (t, t) template ``tpl`` against the windows
     of ``grey`` centred on (u0 + i, v0 + j), at the positions inside the ellipse ``(p - uv)^T
@@ -131,7 +110,7 @@ def _zncc_in_ellipse(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2):
     W = grey.shape[1]
     flat = grey.ravel()
     T = np.empty((t, t), np.float32)
-    tn2 = _zero_mean_into(tpl, T)
+    tn2 = zero_mean_into(tpl, T)
     rh, rw = nv + 2 * h, nu + 2 * h
     y0, x0 = v0 - h, u0 - h
     ii, ii2 = _region_integrals(grey, y0, x0, rh, rw)
@@ -189,7 +168,7 @@ def _window_sums(grey, T, y, x):
     return c, sw, sw2
 
 
-@compiled_kernel(_zero_mean_into, _region_integrals, _score, _score_from_sums, _window_sums, _zncc_in_ellipse,
+@compiled_kernel(zero_mean_into, _region_integrals, _score, _score_from_sums, _window_sums, _zncc_in_ellipse,
                  fastmath={"contract", "reassoc"})
 def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2, peaks, level, most,
                          exhaustive_max):
@@ -209,7 +188,7 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
     h = t // 2
     n = t * t
     T = np.empty((t, t), np.float32)
-    tn2 = _zero_mean_into(tpl, T)
+    tn2 = zero_mean_into(tpl, T)
     if tn2 <= 0.0:
         T[:, :] = 0.0
         tn2 = 1.0
@@ -229,7 +208,7 @@ def _zncc_coarse_to_fine(grey, tpl, u0, v0, nu, nv, uv0, uv1, iaa, iab, ibb, n2,
             Tc[b, a] = 0.25 * (tpl[2 * b, 2 * a] + tpl[2 * b, 2 * a + 1] + tpl[2 * b + 1, 2 * a]
                                + tpl[2 * b + 1, 2 * a + 1])
     Tz = np.empty((tc, tc), np.float32)
-    tcn2 = _zero_mean_into(Tc, Tz)
+    tcn2 = zero_mean_into(Tc, Tz)
     if tcn2 <= 0.0:
         Tz[:, :] = 0.0
         tcn2 = 1.0
@@ -342,211 +321,33 @@ def _best_in_grid(grid):
 
 
 @compiled_kernel()
-def refine_affine_kernel(img, tpl, u, v, iterations, tol, reg):
-    """Sub-pixel refinement of a match at (u, v) px by Gauss-Newton on the zero-mean, unit-norm
-    template under an affine warp about its centre (inverse compositional): the template's shape
-    is fitted to the image too, so a template predicted with a slightly wrong warp does not pull
-    its centre off the feature. The shape has a prior, ``reg |A - I|^2`` (A: the warp's linear
-    part, the identity being the predicted shape), in both the step's matrix and its gradient:
-    with the step's damping alone, the shape of an edge or a noisy patch wandered on from
-    iteration to iteration and the centre with it (no fixed point). Returns (u, v, ok): ok False
-    if it leaves the image, diverges or moves over a pixel."""
-    H, W = img.shape
+def zncc_at(grey, tpl, u, v):
+    """``2 (1 - ZNCC)`` of the (t, t) template ``tpl`` against the window of ``grey`` centred on
+    the integer pixel (u, v); 2 when either is flat or the window leaves the image."""
+    H, W = grey.shape
     t = tpl.shape[0]
     h = t // 2
+    if u - h < 0 or v - h < 0 or u + h >= W or v + h >= H:
+        return 2.0
     n = t * t
-    T = np.empty((t, t))
-    nt = math.sqrt(_zero_mean_into(tpl, T))
-    if nt < 1e-9:
-        return u, v, False
+    mt = 0.0
+    mw = 0.0
     for b in range(t):
         for a in range(t):
-            T[b, a] /= nt
-    # Steepest-descent images (n, 6) and the damped Gauss-Newton matrix, Cholesky-factored.
-    SD = np.empty((n, 6))
-    Hs = np.zeros((6, 6))
-    k = 0
+            mt += tpl[b, a]
+            mw += grey[v - h + b, u - h + a]
+    mt /= n
+    mw /= n
+    stw = 0.0
+    stt = 0.0
+    sww = 0.0
     for b in range(t):
         for a in range(t):
-            a0, a1 = max(a - 1, 0), min(a + 1, t - 1)
-            b0, b1 = max(b - 1, 0), min(b + 1, t - 1)
-            gx = (T[b, a1] - T[b, a0]) / (a1 - a0)
-            gy = (T[b1, a] - T[b0, a]) / (b1 - b0)
-            x, y = a - h, b - h
-            SD[k, 0], SD[k, 1], SD[k, 2], SD[k, 3], SD[k, 4], SD[k, 5] = gx * x, gy * x, gx * y, gy * y, gx, gy
-            for i in range(6):
-                for j in range(i + 1):
-                    Hs[i, j] += SD[k, i] * SD[k, j]
-            k += 1
-    for i in range(4):
-        Hs[i, i] += reg
-    L = np.zeros((6, 6))
-    for i in range(6):
-        for j in range(i + 1):
-            acc = Hs[i, j]
-            for q in range(j):
-                acc -= L[i, q] * L[j, q]
-            if i == j:
-                if not acc > 1e-12:
-                    return u, v, False
-                L[i, i] = math.sqrt(acc)
-            else:
-                L[i, j] = acc / L[j, j]
-    a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0          # the current warp: x_img = A x + (u, v)
-    cu, cv = u, v
-    Wv = np.empty(n)
-    g = np.empty(6)
-    dp = np.empty(6)
-    for _ in range(iterations):
-        k = 0
-        wsum = 0.0
-        for b in range(t):
-            for a in range(t):
-                x, y = a - h, b - h
-                px = a00 * x + a01 * y + cu
-                py = a10 * x + a11 * y + cv
-                if not (0.0 <= px < W - 1 and 0.0 <= py < H - 1):
-                    return u, v, False
-                ix, iy = int(px), int(py)
-                fx, fy = px - ix, py - iy
-                Wv[k] = ((1 - fx) * (1 - fy) * img[iy, ix] + fx * (1 - fy) * img[iy, ix + 1]
-                         + (1 - fx) * fy * img[iy + 1, ix] + fx * fy * img[iy + 1, ix + 1])
-                wsum += Wv[k]
-                k += 1
-        wmean = wsum / n
-        nw = 0.0
-        for k in range(n):
-            Wv[k] -= wmean
-            nw += Wv[k] * Wv[k]
-        nw = math.sqrt(nw)
-        if nw < 1e-9:
-            return u, v, False
-        g[:] = 0.0
-        k = 0
-        for b in range(t):
-            for a in range(t):
-                e = Wv[k] / nw - T[b, a]
-                for i in range(6):
-                    g[i] += SD[k, i] * e
-                k += 1
-        # The prior's pull of the shape back to the predicted one, reg (A - I), in dp's order
-        # (p0 = a00 - 1, p1 = a10, p2 = a01, p3 = a11 - 1).
-        g[0] += reg * (a00 - 1.0)
-        g[1] += reg * a10
-        g[2] += reg * a01
-        g[3] += reg * (a11 - 1.0)
-        for i in range(6):                             # dp = Hs^-1 g by the Cholesky factor
-            acc = g[i]
-            for q in range(i):
-                acc -= L[i, q] * dp[q]
-            dp[i] = acc / L[i, i]
-        for i in range(5, -1, -1):
-            acc = dp[i]
-            for q in range(i + 1, 6):
-                acc -= L[q, i] * dp[q]
-            dp[i] = acc / L[i, i]
-        # Inverse compositional: W <- W o W(dp)^-1, W(dp) = [[1 + p0, p2], [p1, 1 + p3]] x + (p4, p5)
-        d00, d01, d10, d11 = 1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]
-        dd = 1.0 / (d00 * d11 - d01 * d10)
-        i00, i01, i10, i11 = d11 * dd, -d01 * dd, -d10 * dd, d00 * dd
-        t0 = -(i00 * dp[4] + i01 * dp[5])
-        t1 = -(i10 * dp[4] + i11 * dp[5])
-        cu, cv = a00 * t0 + a01 * t1 + cu, a10 * t0 + a11 * t1 + cv
-        a00, a01, a10, a11 = (a00 * i00 + a01 * i10, a00 * i01 + a01 * i11,
-                              a10 * i00 + a11 * i10, a10 * i01 + a11 * i11)
-        if abs(cu - u) > 1.0 or abs(cv - v) > 1.0 or not (0.5 < abs(a00 * a11 - a01 * a10) < 2.0):
-            return u, v, False
-        if dp[4] * dp[4] + dp[5] * dp[5] < tol * tol and abs(dp[0]) + abs(dp[1]) + abs(dp[2]) + abs(dp[3]) < tol:
-            break
-    return cu, cv, True
-
-
-
-@compiled_kernel(_zncc_in_ellipse, _zncc_coarse_to_fine, _best_in_grid, refine_affine_kernel)
-def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
-    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none); only a
-    match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
-    H, W = grey.shape
-    h = tpl.shape[0] // 2
-    a, b, c = S[0, 0], S[0, 1], S[1, 1]
-    if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(uv[0])
-            and np.isfinite(uv[1]) and a * c - b * b > 0):
-        return np.nan, np.nan, 2.0
-    hu, hv = math.sqrt(n2 * a), math.sqrt(n2 * c)
-    if (2 * hu + 1) * (2 * hv + 1) > max_area:
-        return np.nan, np.nan, 2.0
-    u0, u1 = max(math.floor(uv[0] - hu), h), min(math.ceil(uv[0] + hu), W - 1 - h)
-    v0, v1 = max(math.floor(uv[1] - hv), h), min(math.ceil(uv[1] + hv), H - 1 - h)
-    if u1 < u0 or v1 < v0:
-        return np.nan, np.nan, 2.0
-    det = a * c - b * b
-    if tpl.shape[0] >= COARSE_MIN_TEMPLATE:
-        grid = _zncc_coarse_to_fine(grey, tpl, u0, v0, u1 - u0 + 1, v1 - v0 + 1, uv[0], uv[1], c / det, -b / det,
-                                    a / det, n2, COARSE_PEAKS, COARSE_LEVEL, COARSE_LEVEL_MOST, VALLEY_EXHAUSTIVE_MAX_PX)
-    else:
-        grid = _zncc_in_ellipse(grey, tpl, u0, v0, u1 - u0 + 1, v1 - v0 + 1, uv[0], uv[1], c / det, -b / det,
-                                a / det, n2)
-    du, dv, s = _best_in_grid(grid)
-    if not np.isfinite(du):
-        return np.nan, np.nan, 2.0
-    u, v = u0 + du, v0 + dv
-    if s <= max_score:
-        ur, vr, ok = refine_affine_kernel(grey, tpl, u, v, 10, 0.005, AFFINE_DAMPING)
-        if ok:
-            u, v = ur, vr
-    return u, v, s
-
-
-@compiled_kernel(_search_one)
-def search_kernel(grey, tpls, templates, warped, uv, S, n2, max_area, max_score):
-    """Every feature's match: z (m, 2) px (NaN: none in its ellipse) and score (m,); a warped
-    template (``tpls[i]`` with ``warped[i]``) that matches nothing is retried as first seen
-    (``templates[i]``)."""
-    m = tpls.shape[0]
-    z = np.full((m, 2), np.nan)
-    score = np.full(m, 2.0)
-    for i in range(m):
-        u, v, s = _search_one(grey, tpls[i], uv[i], S[i], n2, max_area, max_score)
-        if s > max_score and warped[i]:
-            u, v, s = _search_one(grey, templates[i], uv[i], S[i], n2, max_area, max_score)
-        z[i, 0], z[i, 1], score[i] = u, v, s
-    return z, score
-
-
-def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarray,
-                   Y: np.ndarray, x_v: np.ndarray, cam: CameraIntrinsics, uv: np.ndarray, S: np.ndarray,
-                   max_score: float, max_area: float, n_sigma: float = 3.0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Match the map features ``features`` (m) whose predictions are ``uv`` (m, 2) px with
-    innovation covariances ``S`` (m, 2, 2): each warped by its plane (through its point ``Y``
-    (m, 3), normal ``MapFeature.normal``) where ``warp`` (m,) says so, retried unwarped when the
-    warped template finds nothing. ``grey`` : (H, W) float32. Returns z (m, 2) (NaN: not found),
-    score (m,), found (m,)."""
-    m = len(features)
-    if m == 0:
-        return np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool)
-    t = features[0].template.shape[0]
-    ph = max((f.patch.shape[0] for f in features if f.patch is not None), default=t)
-    templates = np.empty((m, t, t), np.float32)
-    patches = np.zeros((m, ph, ph), np.float32)
-    rays0 = np.zeros((m, 5, 3))
-    normals = np.zeros((m, 3))
-    r0s = np.zeros((m, 3))
-    use = np.asarray(warp, bool).copy()
-    for i, f in enumerate(features):
-        templates[i] = f.template
-        r0s[i] = f.r0
-        if use[i] and f.patch is not None and f.normal is not None and f.patch.shape[0] == ph:
-            patches[i] = f.patch
-            normals[i] = f.normal
-            rays0[i] = f.first_view_rays(cam)
-        else:
-            use[i] = False
-    model, lens = lens_kernel_args(cam)
-    tpls, warped = warp_kernel(templates, patches, use, rays0, normals, r0s, np.ascontiguousarray(Y, float),
-                               np.ascontiguousarray(x_v[:3], float), quat_to_rotation(x_v[3:7]), model, lens)
-    z, score = search_kernel(np.ascontiguousarray(grey, np.float32), tpls, templates, warped,
-                             np.ascontiguousarray(uv, float), np.ascontiguousarray(S, float),
-                             n_sigma * n_sigma, float(max_area), float(max_score))
-    found = score <= max_score
-    return z, score, found
+            dt = tpl[b, a] - mt
+            dw = grey[v - h + b, u - h + a] - mw
+            stw += dt * dw
+            stt += dt * dt
+            sww += dw * dw
+    if stt < 1e-9 or sww < FLAT_VARIANCE * n:
+        return 2.0
+    return 2.0 * (1.0 - stw / math.sqrt(stt * sww))

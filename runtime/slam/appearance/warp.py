@@ -1,6 +1,6 @@
 """A feature's template predicted for the current view: the first-view patch warped by the
-homography its plane induces between the first view and this one (templates.py explains the
-geometry; matching.py searches with the result, normal_fit.py fits the plane to the looks)."""
+homography its plane induces between the first view and this one (plane.py gives the corners;
+search.py searches with the result, normals.py fits the plane to the looks)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from .kernels import compiled_kernel
-from .templates import plane_corners_kernel
+from ..kernels import compiled_kernel
+from .plane import plane_corners_kernel
 
 
 @compiled_kernel()
