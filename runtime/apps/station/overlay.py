@@ -132,6 +132,7 @@ def draw_explore(img, camera: CameraIntrinsics, T_world_cam, ev: ExploreView) ->
     if x1 > x0:
         bar = score_colours(np.linspace(0.0, 1.0, x1 - x0))
         img[h - 18:h - 10, x0:x1] = bar[None]
+        cv2.rectangle(img, (x0 - 1, h - 19), (x1, h - 10), _WHITE, 1)
     return n_in
 
 
