@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kinematics import reference_head
-from kinematics.camera import default_camera, project
+from kinematics.camera import default_camera, project, unproject
 from runtime.apps.closed_loop import ClosedLoop, Task
 from runtime.apps.explore import ExploreChoice
 from runtime.apps.station.geometry import EXPLORE_OBJECTIVE, ExploreView
@@ -62,8 +62,6 @@ def test_the_chosen_candidate_is_drawn_at_its_projection_in_its_scores_colour_an
     T = _pose()
     # Points in front of the camera, 1.2 m along rays through chosen pixels.
     uv_want = np.array([[200.0, 150.0], [420.0, 300.0], [330.0, 380.0]])
-    from kinematics.camera import unproject
-
     rays = unproject(CAM, uv_want)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     pts = T[:3, 3] + 1.2 * rays @ T[:3, :3].T
