@@ -360,11 +360,22 @@ class ClosedLoop:
 
     def set_mode(self, mode: str, image: np.ndarray | None = None, region=None, method: str | None = None) -> None:
         """Switch the controller's mode from outside: ``hold``, ``stabilise`` (Path A, the present
-        attitude), ``body`` (Path B, the present direction) or ``track`` (a 2D tracker on ``region``
+        attitude), ``body`` (Path B, the present direction), ``track`` (a 2D tracker on ``region``
         (x, y, w, h) of ``image``, by default the image's central quarter; ``method`` the 2D
-        tracker, by default the task's). Fixation is
-        :meth:`saccade_to`. Raises ValueError or GazeRefused with the reason."""
-        if mode == "hold":
+        tracker, by default the task's) or ``explore`` (choose a fixation, saccade, dwell, repeat:
+        :meth:`_explore`; needs SLAM started). Fixation is :meth:`saccade_to`. Raises ValueError
+        or GazeRefused with the reason."""
+        if mode == "explore":
+            if self.slam is None:
+                raise ValueError(f"explore chooses views from SLAM's map; this loop runs task {self.task.kind} "
+                                 "without SLAM")
+            if not self.slam.started:
+                raise ValueError("explore chooses views from SLAM's map, which has not started yet; "
+                                 "set explore once SLAM has started")
+            # Choose at the next period (the saccade starts from there), not after a dwell.
+            self._explore_target, self._explore_t, self._explore_landed_t = None, -np.inf, None
+            self.explore_choice = None
+        elif mode == "hold":
             self.ctl.hold()
         elif mode == "stabilise":
             self.ctl.stabilise()
@@ -378,8 +389,8 @@ class ClosedLoop:
             self.tracker = make_tracker(method or self.task.method, image, tuple(np.asarray(region, float)))
             self.region_uv = region_polygon(region)
         else:
-            raise ValueError(f"mode {mode!r} cannot be set from outside; use hold, stabilise, body or track "
-                             f"(fixation: saccade_to a point)")
+            raise ValueError(f"mode {mode!r} cannot be set from outside; use hold, stabilise, body, track or "
+                             f"explore (fixation: saccade_to a point)")
         if mode != "track":
             self.tracker = None
         self._take_over(mode)
@@ -388,6 +399,11 @@ class ClosedLoop:
     def _take_over(self, kind: str) -> None:
         self.external = True
         self._kind = kind
+
+    @property
+    def kind(self) -> str:
+        """What the loop does now: the task's kind, or the mode an operator set since."""
+        return self._kind
 
     def _set_target(self, i: int, t: float) -> None:
         task = self.task
@@ -436,10 +452,12 @@ class ClosedLoop:
         """Whether explore chooses again now: ``dwell_s`` after landing, or after giving up a
         saccade that did not land (or a choice that found nothing); before any choice, as soon as
         SLAM is localised, then every ``dwell_s``."""
+        # An operator's explore on another task's loop takes explore's own dwell.
+        dwell = self.task.dwell_s if self.task.kind == "explore" else EXPLORE_DWELL_S
         if self._explore_target is None:
-            return t - self._explore_t >= self.task.dwell_s
+            return t - self._explore_t >= dwell
         if self._explore_landed_t is not None:
-            return t - self._explore_landed_t >= self.task.dwell_s
+            return t - self._explore_landed_t >= dwell
         return t - self._explore_t >= EXPLORE_GIVE_UP_S
 
     def _head_motion_start(self, obs: Observation) -> bool:
@@ -504,7 +522,7 @@ class ClosedLoop:
                 self._set_target(0, obs.t)
             elif task.kind == "explore":
                 self._explore(obs)
-        elif task.kind == "explore" and not self.external and i > 1 and self._explore_due(obs.t):
+        elif self._kind == "explore" and i > 1 and self._explore_due(obs.t):
             self._explore(obs)
         if task.kind == "saccade" and not self.external and i > 1 and self._task_t0 is not None \
                 and obs.t - self._task_t0 >= (self._current + 1) * task.dwell_s:
@@ -543,19 +561,18 @@ class ClosedLoop:
             self._basis_t = None
         cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
         if cmd.landed:
-            if task.kind == "explore" and not self.external:
+            if self._kind == "explore":
                 self._explore_landed_t = obs.t
-            self.log.events.append({"t": obs.t, "event": "landed", "target": "external" if self.external
-                                    else self._explore_n if task.kind == "explore"
-                                    else self._current % len(task.targets)})
+            self.log.events.append({"t": obs.t, "event": "landed", "target": self._explore_n if self._kind == "explore"
+                                    else "external" if self.external else self._current % len(task.targets)})
         q = np.asarray(obs.q, float)
         qd_meas = (q - self._q_prev) / self.dt if i else np.zeros(3)
         self._q_prev = q.copy()
         tgt = task.targets[self._current % len(task.targets)] if len(task.targets) else np.full(3, np.nan)
-        if task.kind == "explore" and self._explore_target is not None:
-            tgt = self._explore_target
         if self.external:
             tgt = self._external_target if self._external_target is not None else np.full(3, np.nan)
+        if self._kind == "explore" and self._explore_target is not None:
+            tgt = self._explore_target
         err = math.degrees(cmd.error_rad) if np.isfinite(cmd.error_rad) else float("nan")
         self.log.rows.append(LoopRow(
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,

@@ -166,6 +166,13 @@ def test_422_with_the_reason_and_the_loop_goes_on(station, body, why):
     wait_periods(station, 2)
 
 
+def test_an_unknown_mode_is_422_naming_the_modes_there_are(station):
+    code, payload, _ = call(station, "POST", "/api/mode", {"mode": "map"})
+    assert code == 422
+    reason = json.loads(payload)["reason"]
+    assert "'map'" in reason and "hold, stabilise, body, track, explore" in reason
+
+
 def test_a_body_that_is_not_json_is_422(station):
     code, payload, _ = call(station, "POST", "/api/label", raw="{not json")
     assert code == 422 and "not JSON" in json.loads(payload)["reason"]

@@ -16,7 +16,8 @@ import numpy as np
 from .geometry import OBJECT_KINDS
 
 #: Modes an operator may switch to (fixation is a click or a fixate action: it needs a point).
-OPERATOR_MODES = ("hold", "stabilise", "body", "track")
+#: explore maps: it chooses fixations itself (runtime.apps.explore) until another mode or a fixation.
+OPERATOR_MODES = ("hold", "stabilise", "body", "track", "explore")
 MAX_TEXT = 200
 #: How far from the world's origin a point may be named, m (a wearable's scene is metres across;
 #: a point 1e300 m away is a mistake, not a direction).

@@ -61,6 +61,49 @@ class VirtualObject:
         return np.array([[corners[i], corners[j]] for i, j in pairs])
 
 
+#: What explore maximises over its candidate views (runtime.apps.explore), as the station states it.
+EXPLORE_OBJECTIVE = "score = pose information + novelty (nats)"
+
+
+@dataclass(frozen=True)
+class ExploreView:
+    """Explore's last choice as the station shows it: its candidates (the reachable views it
+    scored, finite scores only). points_world (n, 3) m, each candidate's fixation point;
+    score (n,) nats; pose_info (n,) nats, the expected pose information; novelty (n,) nats, the
+    score's empty-cells term; visible (n,) mapped features predicted in that view; chosen : the
+    index (into these) of the fixation the loop saccaded to, -1 if none yet."""
+
+    points_world: np.ndarray
+    score: np.ndarray
+    pose_info: np.ndarray
+    novelty: np.ndarray
+    visible: np.ndarray
+    chosen: int = -1
+
+    @classmethod
+    def of(cls, choice, target_world) -> "ExploreView":
+        """From an :class:`~runtime.apps.explore.ExploreChoice` (None: nothing chosen yet) and the
+        loop's fixation target (3,) m: the chosen one is the candidate at that target (the loop
+        takes the best the controller accepts, not always the top score)."""
+        if choice is None:
+            return cls(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, int))
+        k = np.flatnonzero(np.isfinite(choice.score))
+        pts = np.asarray(choice.points_world, float)[k]
+        tgt = np.asarray(target_world, float).reshape(-1)
+        hit = np.flatnonzero(np.all(np.abs(pts - tgt) <= 1e-9, axis=1)) if tgt.shape == (3,) else []
+        return cls(pts, choice.score[k].astype(float), choice.pose_info[k].astype(float),
+                   (choice.score[k] - choice.pose_info[k]).astype(float), choice.n_visible[k].astype(int),
+                   int(hit[0]) if len(hit) else -1)
+
+    def normalised(self) -> np.ndarray:
+        """(n,) the scores mapped to [0, 1] over the candidates (all 1 when they are equal)."""
+        s = np.asarray(self.score, float)
+        if len(s) == 0:
+            return s
+        span = s.max() - s.min()
+        return (s - s.min()) / span if span > 0 else np.ones_like(s)
+
+
 def world_to_pixels(camera: CameraIntrinsics, T_world_cam: np.ndarray, X) -> np.ndarray:
     """(N, 2) pixels of world points X (N, 3) m seen from ``T_world_cam`` (4, 4), through the
     camera's lens model; NaN for points behind the camera or with no pose."""

@@ -30,7 +30,7 @@ from ...robot import JointCommand, Observation, Robot, SessionEnded, TruthSource
 from ...sequence import Target
 from ..closed_loop import ClosedLoop, Task
 from . import actions as A
-from .geometry import Label, VirtualObject, feature_at_pixel
+from .geometry import ExploreView, Label, VirtualObject, feature_at_pixel
 from .slam_view import MapView, empty_view, map_view
 
 #: A wearer prompt stays on the pages this long after it was last said.
@@ -52,7 +52,8 @@ class Snapshot:
     wearer's standing prompt text ("" if none). labels, objects : the operator's. T_world_joints :
     (3, 3) the head's joint origins and ``p_cam`` (3,) the optical centre, world m, through SLAM's
     pose (NaN without it). trajectory : (M, 3) SLAM's camera centres so far. loop_hz : the
-    period rate over the last second of wall time."""
+    period rate over the last second of wall time. explore : explore's candidates and scores
+    while the loop explores (empty before its first choice), None otherwise."""
 
     seq: int
     t: float
@@ -71,6 +72,7 @@ class Snapshot:
     T_world_joints: np.ndarray
     trajectory: np.ndarray
     loop_hz: float
+    explore: ExploreView | None = None
 
 
 class Pending:
@@ -299,7 +301,8 @@ class LiveStation:
             target=np.asarray(row.target, float).copy(), estop=self._estop, estop_reason=self._estop_reason,
             prompt=prompt, labels=tuple(self.run.labels), objects=tuple(self.run.objects),
             T_world_joints=joints, trajectory=np.array(self._traj).reshape(-1, 3),
-            loop_hz=(len(self._walls) - 1) / max(self._walls[-1] - self._walls[0], 1e-9) if len(self._walls) > 1 else 0.0)
+            loop_hz=(len(self._walls) - 1) / max(self._walls[-1] - self._walls[0], 1e-9) if len(self._walls) > 1 else 0.0,
+            explore=ExploreView.of(loop.explore_choice, row.target) if loop.kind == "explore" else None)
         with self._cond:
             self._snap = snap
             self._cond.notify_all()

@@ -1,6 +1,6 @@
 """The augmented camera view: the live image with the world frame's axes, the active search
 (predicted features and their 3-sigma ellipses, the matches), the operator's labels and virtual
-objects, all projected through SLAM's current pose and the lens model (curved edges are sampled,
+objects, explore's candidate fixations coloured by their scores, all projected through SLAM's current pose and the lens model (curved edges are sampled,
 so any lens model of the formats draws them where the camera sees them).
 
 Drawn in the web server's threads, never in the control loop's."""
@@ -14,7 +14,7 @@ import numpy as np
 
 from kinematics.camera import CameraIntrinsics
 
-from .geometry import Label, VirtualObject, ellipse_axes, world_to_pixels
+from .geometry import EXPLORE_OBJECTIVE, ExploreView, Label, VirtualObject, ellipse_axes, world_to_pixels
 from .slam_view import MapView
 
 AXIS_LENGTH_M = 0.1
@@ -23,6 +23,15 @@ EDGE_SAMPLES = 12
 
 _RED, _GREEN, _BLUE = (230, 40, 40), (40, 200, 40), (60, 90, 255)
 _YELLOW, _CYAN, _MAGENTA, _WHITE = (250, 220, 0), (0, 220, 220), (230, 0, 230), (255, 255, 255)
+#: Explore's candidate markers: radius, px, at the lowest and the highest score; the chosen one's ring.
+EXPLORE_RADIUS_PX = (3, 9)
+EXPLORE_RING_PX = 4
+
+
+def score_colours(s: np.ndarray) -> np.ndarray:
+    """(n, 3) uint8 RGB for scores ``s`` (n,) in [0, 1]: viridis (dark blue low, yellow high)."""
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)[:, 0, ::-1]
+    return lut[np.clip(np.round(np.asarray(s, float) * 255), 0, 255).astype(int)]
 
 
 def _polyline(img, camera, T, segments, colour, thickness=2) -> int:
@@ -90,10 +99,48 @@ def draw_objects(img, camera: CameraIntrinsics, T_world_cam, objects: list[Virtu
         _polyline(img, camera, T_world_cam, ob.edges(), _MAGENTA if ob.kind == "arrow" else _CYAN, 2)
 
 
+def _text(img, text, org, colour, scale=0.45) -> None:
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+
+
+def draw_explore(img, camera: CameraIntrinsics, T_world_cam, ev: ExploreView) -> int:
+    """Explore's candidates: each fixation point a disc whose colour and size grow with its score
+    (normalised over the candidates), its score beside it, the chosen one ringed in white; and a
+    legend line stating the objective. Returns how many candidates are in the image."""
+    h, w = img.shape[:2]
+    uv = world_to_pixels(camera, T_world_cam, ev.points_world)
+    inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    s = ev.normalised()
+    colours = score_colours(s)
+    r0, r1 = EXPLORE_RADIUS_PX
+    # The chosen one last, so that no other candidate's disc covers it.
+    for k in sorted(np.flatnonzero(inside), key=lambda k: k == ev.chosen):
+        c = (int(round(uv[k, 0])), int(round(uv[k, 1])))
+        r = int(round(r0 + (r1 - r0) * s[k]))
+        cv2.circle(img, c, r + 1, (0, 0, 0), -1, cv2.LINE_AA)
+        cv2.circle(img, c, r, tuple(int(v) for v in colours[k]), -1, cv2.LINE_AA)
+        if k == ev.chosen:
+            cv2.circle(img, c, r + EXPLORE_RING_PX, _WHITE, 2, cv2.LINE_AA)
+        _text(img, f"{ev.score[k]:.2f}", (c[0] + r + 6, c[1] + 4), _WHITE, 0.4)
+    n_in = int(inside.sum())
+    legend = f"explore: {EXPLORE_OBJECTIVE} | ring: chosen | {n_in}/{len(ev.score)} in view"
+    _text(img, legend, (8, h - 10), _WHITE, 0.42)
+    # The colour scale after it: low (left) to high (right).
+    (tw, _), _ = cv2.getTextSize(legend, cv2.FONT_HERSHEY_SIMPLEX, 0.42, 1)
+    x0, x1 = 8 + tw + 10, min(w - 8, 8 + tw + 90)
+    if x1 > x0:
+        bar = score_colours(np.linspace(0.0, 1.0, x1 - x0))
+        img[h - 18:h - 10, x0:x1] = bar[None]
+        cv2.rectangle(img, (x0 - 1, h - 19), (x1, h - 10), _WHITE, 1)
+    return n_in
+
+
 def camera_view(image: np.ndarray, camera: CameraIntrinsics, view: MapView, labels: list[Label],
-                objects: list[VirtualObject], banner: str = "") -> np.ndarray:
+                objects: list[VirtualObject], banner: str = "", explore: ExploreView | None = None) -> np.ndarray:
     """The augmented camera view (H, W, 3) uint8 RGB: a copy of ``image`` with the overlays
-    drawn where SLAM's pose ``view.T_world_cam`` and the lens model put them (none while lost)."""
+    drawn where SLAM's pose ``view.T_world_cam`` and the lens model put them (none while lost).
+    ``explore`` : explore's candidates, while the loop explores (None otherwise)."""
     img = np.ascontiguousarray(image, dtype=np.uint8).copy()
     if view.localised:
         draw_world_axes(img, camera, view.T_world_cam)
@@ -101,6 +148,8 @@ def camera_view(image: np.ndarray, camera: CameraIntrinsics, view: MapView, labe
         draw_features(img, camera, view)
         draw_objects(img, camera, view.T_world_cam, objects)
         draw_labels(img, camera, view.T_world_cam, labels)
+        if explore is not None:
+            draw_explore(img, camera, view.T_world_cam, explore)
     if banner:
         cv2.putText(img, banner, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(img, banner, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, _WHITE, 1, cv2.LINE_AA)

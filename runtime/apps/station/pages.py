@@ -42,7 +42,9 @@ _OPERATOR = r"""<!doctype html>
  <div>Mode:
   <button data-mode="hold">hold</button> <button data-mode="stabilise">stabilise (Path A)</button>
   <button data-mode="body">body (Path B)</button> <button data-mode="track">track</button>
+  <button data-mode="explore" title="map: fixate where score = pose information + novelty is highest">explore (map)</button>
  </div>
+ <div id="explore"></div>
  <div><button id="stop">EMERGENCY STOP</button> <button id="reset">reset</button>
   <a id="wearer" target="_blank" style="color:#8cf">wearer's page</a></div>
  <div id="log"></div>
@@ -134,6 +136,10 @@ async function poll() {
         `t ${s.t === null ? "-" : s.t.toFixed(2)} s | ${s.mode} | ${s.features.length} features | loop ${s.loop_hz} Hz | view ${fps} fps` +
         (s.estop ? " | E-STOP LATCHED" : "") + (s.running ? "" : " | ENDED");
       document.getElementById("prompt").textContent = s.prompt ? "Wearer: " + s.prompt : "";
+      const ex = s.explore, best = ex && ex.chosen !== null ? ex.candidates[ex.chosen] : null;
+      document.getElementById("explore").textContent = !ex ? "" :
+        `Explore: ${ex.objective} | ${ex.candidates.length} candidates` + (best ? ` | chosen ${best.score.toFixed(2)} ` +
+        `(pose ${best.pose_info.toFixed(2)} + novelty ${best.novelty.toFixed(2)}, ${best.visible} features in view)` : "");
     } catch (e) {}
     await new Promise(res => setTimeout(res, 300));
   }

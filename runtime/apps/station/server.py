@@ -51,6 +51,7 @@ from urllib.parse import parse_qs, urlsplit
 import numpy as np
 
 from . import actions as A
+from .geometry import EXPLORE_OBJECTIVE
 from .live import LiveStation, Snapshot
 from .overlay import camera_view, encode_jpeg
 from .pages import operator_page, refused_page, wearer_page
@@ -110,7 +111,12 @@ def prompt_json(s: Snapshot | None, station: LiveStation) -> dict:
 
 
 def state_json(s: Snapshot | None, station: LiveStation) -> dict:
-    """GET /api/state: the contract's fields (t, mode, T_world_cam, features, joints_deg) and more."""
+    """GET /api/state: the contract's fields (t, mode, T_world_cam, features, joints_deg) and more.
+
+    ``explore`` : null unless the loop explores; then ``{"objective": str, "chosen": int | null,
+    "candidates": [{"xyz": [x, y, z] m, "score": nats, "pose_info": nats, "novelty": nats,
+    "visible": int}]}``: the reachable candidate views of its last choice (none before the
+    first), ``chosen`` the index of the one it saccaded to."""
     if s is None:
         return {"t": None, "mode": "starting", "T_world_cam": None, "features": [], "joints_deg": None,
                 "seq": 0, "estop": False, "running": not station.finished.is_set()}
@@ -130,6 +136,12 @@ def state_json(s: Snapshot | None, station: LiveStation) -> dict:
         "labels": [{"id": lb.id, "text": lb.text, "xyz": lb.xyz.tolist()} for lb in s.labels],
         "objects": [{"id": ob.id, "kind": ob.kind, "xyz": ob.xyz.tolist(), "size": ob.size.tolist()} for ob in s.objects],
         "loop_hz": round(s.loop_hz, 2), "running": not station.finished.is_set(),
+        "explore": None if s.explore is None else {
+            "objective": EXPLORE_OBJECTIVE, "chosen": s.explore.chosen if s.explore.chosen >= 0 else None,
+            "candidates": [{"xyz": [float(c) for c in p], "score": float(sc), "pose_info": float(pi),
+                            "novelty": float(nv), "visible": int(vis)}
+                           for p, sc, pi, nv, vis in zip(s.explore.points_world, s.explore.score, s.explore.pose_info,
+                                                         s.explore.novelty, s.explore.visible)]},
     }
 
 
@@ -468,8 +480,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.close_connection = True
 
     def _render(self, s: Snapshot):
-        banner = f"t {s.t:5.2f} s  {s.mode}" + ("  E-STOP" if s.estop else "") + (f"  | {s.prompt}" if s.prompt else "")
-        return camera_view(s.image, self.server.station.camera, s.view, list(s.labels), list(s.objects), banner)
+        banner = f"t {s.t:5.2f} s  {'explore: ' if s.explore is not None else ''}{s.mode}" + ("  E-STOP" if s.estop else "") + (f"  | {s.prompt}" if s.prompt else "")
+        return camera_view(s.image, self.server.station.camera, s.view, list(s.labels), list(s.objects), banner,
+                           s.explore)
 
     # ------------------------------------------------------------------ the 3D view (viser)
     def _tunnel(self, upstream_path: str) -> None:
