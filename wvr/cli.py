@@ -1146,11 +1146,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="how new features start: inverse depth, in the filter from the first frame (default), or "
                          "the paper's particle depth pdf")
     sl.add_argument("--measure", type=_positive_int, default=None, metavar="N",
-                    help="features measured per frame, at most (default: MapSettings.measure_max, 60)")
+                    help="features measured per frame, at most (default: MapSettings.measure.measure_max, 60)")
     sl.add_argument("--fixed-impulses", action="store_true",
                     help="predict with MonoSLAM's fixed impulses (4 m/s^2, 6 rad/s^2) instead of adapting them to the "
-                         "track's own motion through fast turns (SlamConfig.adapt_sigma_a, adapt_sigma_alpha, "
-                         "adapt_onset)")
+                         "track's own motion through fast turns (SlamConfig.impulses: adapt_sigma_a, "
+                         "adapt_sigma_alpha, adapt_onset)")
     sl.add_argument("--save-map", metavar="FILE", help="save the final map there (.npz) to re-locate in it later")
     sl.add_argument("--map", metavar="FILE",
                     help="start from a saved map instead of target.toml: re-locate in it, continue in its frame")

@@ -7,8 +7,10 @@ Both are frozen dataclasses of frozen groups, one a part of the SLAM reads (``se
 ``cfg.impulses``). Compatibility: each old flat name maps to one (group, field) in
 :data:`MAP_FLAT` / :data:`SLAM_FLAT`; it is accepted as a keyword by the constructor and by
 ``dataclasses.replace`` (``replace(MapSettings(), use_imu=False)``, or :func:`with_overrides`),
-and reads as a property (``settings.use_imu`` is ``settings.imu.use_imu``). A name in neither is
-refused with the list of groups."""
+so TOML files and overrides keep working; :meth:`_Grouped.flat` gives every value by its flat
+name (records, comparisons). A flat name is not an attribute: ``settings.use_imu`` is refused
+with its new place, ``settings.imu.use_imu``. A keyword in neither is refused with the list of
+groups."""
 
 from __future__ import annotations
 
@@ -72,12 +74,12 @@ class _Grouped:
         out.update({f.name: getattr(self, f.name) for f in fields(self) if f.name not in type(self)._GROUPS})
         return out
 
-
-def _add_flat_properties(cls) -> None:
-    """Old flat attribute reads (``settings.use_imu``) as properties reading the group."""
-    for k, (g, f) in cls._FLAT.items():
-        setattr(cls, k, property(lambda self, g=g, f=f: getattr(getattr(self, g), f),
-                                 doc=f"Compatibility: ``{g}.{f}``."))
+    def __getattr__(self, name):
+        # Python calls this only for a name the object lacks, so group reads cost nothing.
+        where = type(self)._FLAT.get(name)
+        if where is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        raise AttributeError(f"{type(self).__name__}.{name} moved: read settings.{where[0]}.{where[1]}")
 
 
 def with_overrides(settings, **flat):
@@ -225,7 +227,6 @@ class SlamConfig(_Grouped):
 
 
 SLAM_FLAT = SlamConfig._FLAT
-_add_flat_properties(SlamConfig)
 DEFAULT_CONFIG = SlamConfig()
 
 
@@ -479,4 +480,3 @@ class MapSettings(_Grouped):
 
 
 MAP_FLAT = MapSettings._FLAT
-_add_flat_properties(MapSettings)

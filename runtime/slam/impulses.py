@@ -17,8 +17,9 @@ from .state import State
 
 class ImpulseAdapter:
     """The impulses one track predicts with (``motion_cfg``: ``cfg`` with its ``sigma_a`` and
-    ``sigma_alpha`` adapted, SlamConfig.adapt_sigma_a, adapt_sigma_alpha) and the history they
-    are estimated from: (t, v (3,), trace of v's covariance, w (3,), trace of w's covariance)."""
+    ``sigma_alpha`` adapted, SlamConfig.impulses.adapt_sigma_a, adapt_sigma_alpha) and the
+    history they are estimated from: (t, v (3,), trace of v's covariance, w (3,), trace of w's
+    covariance)."""
 
     def __init__(self, cfg: SlamConfig):
         self.cfg = cfg

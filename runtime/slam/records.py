@@ -14,8 +14,8 @@ class TrackingStatus(enum.Enum):
 
     INITIALISING: not localised yet (before ``start``, or a saved map's session until it is
     first re-localised). TRACKING: the last frame matched at least 3 features. RECENTLY_LOST:
-    fewer for some frames, fewer than ``MapSettings.lost_after``. LOST: for that many: the map
-    is frozen and the pose sought again. RELOCALISED: a lost track's pose found again this frame
+    fewer for some frames, fewer than ``MapSettings.relocalisation.lost_after``. LOST: for that
+    many: the map is frozen and the pose sought again. RELOCALISED: a lost track's pose found again this frame
     and confirmed by the active search."""
 
     INITIALISING = "initialising"
@@ -106,7 +106,7 @@ class FrameStats:
     guided: int = 0               # features searched in regions narrowed by the first ones (guided.py)
     retried: bool = False         # searched again with a larger motion impulse (measure.Measurement.measure)
     onset: bool = False           # measured again with a turn's impulses (track.Track.step)
-    sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.adapt_sigma_a)
-    sigma_alpha: float = 0.0      # the angular impulse, rad/s^2 (SlamConfig.adapt_sigma_alpha)
+    sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.impulses.adapt_sigma_a)
+    sigma_alpha: float = 0.0      # the angular impulse, rad/s^2 (SlamConfig.impulses.adapt_sigma_alpha)
     reacquired: bool = False      # the camera put back at the target's pose (reacquire.TargetWatch)
     skipped: str = ""

@@ -147,7 +147,7 @@ class Track:
     # ------------------------------------------------------------------ the loop's steps
     def _predict(self, t_prev: float, t: float, imu_rows, st: FrameStats, lost: bool, covered_until: float):
         """The prediction, and before it the camera's mean and rows of P (all a prediction
-        changes) while a turn may begin in this frame (SlamConfig.adapt_onset)."""
+        changes) while a turn may begin in this frame (SlamConfig.impulses.adapt_onset)."""
         cfg, imp = self.cfg, self.impulses
         if lost:
             imp.reset()              # lost, the prior: nothing says how the camera moves now

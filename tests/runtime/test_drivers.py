@@ -449,15 +449,15 @@ def test_the_rvc_streams_noise_reaches_the_slams_prediction():
     rvc, text = ImuReader.open(devs[0].path, "bno085-rvc"), ImuReader.open(devs[1].path, "text")
     try:
         # Rates differenced from 0.01-deg orientations are far noisier than a raw gyro's.
-        assert rvc.noise.gyro == RVC_GYRO_NOISE > 2 * DEFAULT_CONFIG.imu_gyro_noise and text.noise is None
+        assert rvc.noise.gyro == RVC_GYRO_NOISE > 2 * DEFAULT_CONFIG.imu.imu_gyro_noise and text.noise is None
         head = reference_head()
         info = RobotInfo(head, default_camera(), 30.0, head.max_speed, imu_noise=rvc.noise)
         cfg = slam_config(info)
-        assert (cfg.imu_gyro_noise, cfg.imu_accel_noise) == (rvc.noise.gyro, rvc.noise.accel)
+        assert (cfg.imu.imu_gyro_noise, cfg.imu.imu_accel_noise) == (rvc.noise.gyro, rvc.noise.accel)
         assert slam_config(RobotInfo(head, default_camera(), 30.0, head.max_speed)) == DEFAULT_CONFIG
         # A measured IMU latency (rig.toml's [imu] clock_offset_ms) is where SLAM starts its clock offset.
         late = RobotInfo(head, default_camera(), 30.0, head.max_speed, imu_clock_offset_s=0.045)
-        assert slam_config(late).time_offset0 == 0.045
+        assert slam_config(late).imu.time_offset0 == 0.045
     finally:
         rvc.close()
         text.close()

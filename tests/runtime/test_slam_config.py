@@ -1,5 +1,5 @@
 """The SLAM's settings as frozen groups, and the one mapping that keeps the old flat names
-working (runtime/slam/config.py)."""
+working as keywords and refuses them as attributes (runtime/slam/config.py)."""
 
 from dataclasses import FrozenInstanceError, replace
 
@@ -10,8 +10,7 @@ from runtime.slam.config import DEFAULT_CONFIG, MAP_FLAT, SLAM_FLAT, MapSettings
 
 def test_a_flat_override_lands_in_its_group_and_keeps_the_other_groups():
     s = replace(MapSettings().with_measure(30), use_imu=False, ransac_confidence=0.95, features="particles")
-    assert s.imu.use_imu is False and s.use_imu is False
-    assert s.ransac.confidence == 0.95 and s.ransac_confidence == 0.95
+    assert s.imu.use_imu is False and s.ransac.confidence == 0.95
     assert s.features == "particles"
     assert (s.measure.measure_max, s.measure.visible_min) == (30, 24)      # with_measure's group survives
     assert s.imu.imu_biases is True and s.ransac.threshold_px == 2.0       # the rest of each group unchanged
@@ -23,13 +22,25 @@ def test_the_filter_s_config_maps_its_flat_names_too():
     c = replace(DEFAULT_CONFIG, time_offset0=0.02, adapt_onset=False, sigma_pixel=2.0)
     assert (c.imu.time_offset0, c.impulses.adapt_onset, c.sigma_pixel) == (0.02, False, 2.0)
     assert c.motion == DEFAULT_CONFIG.motion and c.guard == DEFAULT_CONFIG.guard
-    assert SlamConfig(sigma_a=2.5).motion.sigma_a == 2.5 and SlamConfig(sigma_a=2.5).sigma_a == 2.5
+    assert SlamConfig(sigma_a=2.5).motion.sigma_a == 2.5
 
 
-def test_every_flat_name_reads_its_group_s_value():
-    s = MapSettings()
-    for name, (group, field) in MAP_FLAT.items():
-        assert getattr(s, name) == getattr(getattr(s, group), field)
+def test_every_flat_name_lists_its_group_s_value_and_is_refused_as_an_attribute():
+    s, c = MapSettings(reloc_every=7), SlamConfig(sigma_a=2.5)
+    for obj, table in ((s, MAP_FLAT), (c, SLAM_FLAT)):
+        values = obj.flat()
+        for name, (group, field) in table.items():
+            assert values[name] == getattr(getattr(obj, group), field)
+            moved = rf"^{type(obj).__name__}\.{name} moved: read settings\.{group}\.{field}$"
+            with pytest.raises(AttributeError, match=moved):
+                getattr(obj, name)
+    assert (s.flat()["reloc_every"], c.flat()["sigma_a"]) == (7, 2.5)
+    # a renamed one names its new field; a name that never was one is the usual error
+    with pytest.raises(AttributeError, match="ransac_confidence moved: read settings.ransac.confidence"):
+        s.ransac_confidence
+    with pytest.raises(AttributeError, match="has no attribute 'use_imus'$"):
+        s.use_imus
+    assert not hasattr(s, "use_imu") and s.features == "inverse-depth" and c.sigma_pixel == 1.0
     # every old field, plus the top-level ones (93), and the guided search's three (measure.guide_*)
     assert len(MAP_FLAT) + 2 == 93 + 3 and len(SLAM_FLAT) + 1 == 29
     assert set(MapSettings().flat()) == set(MAP_FLAT) | {"features", "warp"}

@@ -130,7 +130,7 @@ def simulate_inverse_depth(seed: int, n_frames: int = 75, n_known: int = 6, n_ne
     # The true inverse depths drawn from the filter's own prior N(rho0, sigma_rho^2), kept to
     # 0.5 .. 5 m: a consistency test needs truths the prior describes (a prior that is off in the
     # same direction for every feature pulls the camera coherently, and no filter is consistent).
-    rho = rng.normal(SETTINGS.rho0, SETTINGS.sigma_rho, 20 * n_new)
+    rho = rng.normal(SETTINGS.inverse_depth.rho0, SETTINGS.inverse_depth.sigma_rho, 20 * n_new)
     depth = 1.0 / rho[(rho > 0.2) & (rho < 2.0)][:n_new]
     rays = np.column_stack([(uv0 - [CAM.cx, CAM.cy]) / [CAM.fx, CAM.fy], np.ones(n_new)])
     new = rays * (depth / np.linalg.norm(rays, axis=1))[:, None]
@@ -141,7 +141,8 @@ def simulate_inverse_depth(seed: int, n_frames: int = 75, n_known: int = 6, n_ne
     truth = [*known]
     for y in new:
         uv = true_pixels(x_true, y[None])[0] + rng.normal(0, cfg.sigma_pixel, 2)
-        add_inverse_depth_feature(s, uv, CAM, SETTINGS.rho0, SETTINGS.sigma_rho, cfg.sigma_pixel**2)
+        idp = SETTINGS.inverse_depth
+        add_inverse_depth_feature(s, uv, CAM, idp.rho0, idp.sigma_rho, cfg.sigma_pixel**2)
         truth.append(y)
     truth = np.array(truth)
     Pn_sd = np.sqrt(np.diag(noise_covariance(DT, cfg)))
@@ -157,7 +158,7 @@ def simulate_inverse_depth(seed: int, n_frames: int = 75, n_known: int = 6, n_ne
         nees_th.append(b)
         # The system's linearity test (mapping.MapManager.conversions), checked against the model's own.
         _, L = inverse_depth.points_and_linearity_kernel(s.x, s.P, s.kinds, s.starts, s.anchors, s.r, 0.05)
-        for k in np.flatnonzero(L < SETTINGS.linearity_threshold)[::-1]:
+        for k in np.flatnonzero(L < SETTINGS.inverse_depth.linearity_threshold)[::-1]:
             i_rho = s.feature_slice(k).start + 5
             assert np.isclose(L[k], inverse_depth.linearity_index(s.feature(k), s.anchors[k], np.sqrt(s.P[i_rho, i_rho]),
                                                                   s.r), rtol=1e-9)
@@ -188,7 +189,7 @@ def converted_points_nees(runs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     converted = np.array([r["converted"] / r["n_new"] for r in runs])
     assert converted.min() >= 0.5                      # the test is about converted points
     assert len(at_conversion) == sum(r["converted"] for r in runs) == len(at_end)
-    assert max(r["L"].max() for r in runs) < SETTINGS.linearity_threshold
+    assert max(r["L"].max() for r in runs) < SETTINGS.inverse_depth.linearity_threshold
     return at_conversion, at_end, converted
 
 

@@ -369,7 +369,7 @@ def test_process_noise_is_G_Pn_Gt_plus_the_bias_walks(cam_dim):
     x_v = st.random_camera(rng, cam_dim=cam_dim)
     G = f_and_dfdx_dfdn(x_v, DT)[2]
     Pn = noise_covariance(DT, cfg)
-    t0 = cfg.motion_noise_interval
+    t0 = cfg.motion.motion_noise_interval
     assert np.allclose(np.diag(Pn), [4 * DT * t0] * 3 + [9 * DT * t0] * 3)
     assert np.allclose(np.diag(noise_covariance(t0, cfg)), [(2 * t0) ** 2] * 3 + [(3 * t0) ** 2] * 3)   # MonoSLAM's
     walks = np.zeros((cam_dim, cam_dim))
@@ -430,7 +430,7 @@ def test_predict_equals_the_dense_prediction_and_leaves_the_features(cam_dim):
     # A lost track's noise gain scales the impulses' variance by its square.
     s1, s2 = State(x0, P0, cam_dim, s.kinds, s.anchors), State(x0, P0, cam_dim, s.kinds, s.anchors)
     predict(s1, DT, CFG, noise_gain=2.0)
-    predict(s2, DT, SlamConfig(sigma_a=2 * CFG.sigma_a, sigma_alpha=2 * CFG.sigma_alpha))
+    predict(s2, DT, SlamConfig(sigma_a=2 * CFG.motion.sigma_a, sigma_alpha=2 * CFG.motion.sigma_alpha))
     st.assert_close(s1.P[:13, :13], s2.P[:13, :13], 1e-12)
 
 
@@ -448,7 +448,7 @@ def test_a_long_step_takes_the_variance_of_the_steps_it_spans():
         predict(three, DT, CFG)
     st.assert_close(np.diag(one.P)[7:13], np.diag(three.P)[7:13], 1e-9)
     added = np.diag(one.P)[7:10] - 1e-4
-    assert np.allclose(added, CFG.sigma_a**2 * 3 * DT * CFG.motion_noise_interval)
+    assert np.allclose(added, CFG.motion.sigma_a**2 * 3 * DT * CFG.motion.motion_noise_interval)
 
 
 def test_predict_integrates_constant_velocities_exactly():

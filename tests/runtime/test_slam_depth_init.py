@@ -77,7 +77,7 @@ def test_create_spreads_the_particles_along_the_unit_ray():
     assert abs(p.mean - 2.75) < 1e-12 and not p.is_gaussian()
 
 
-def run_sideways(true_point, seed: int, frames: int = 40, gauss_ratio: float = MapSettings().gauss_ratio):
+def run_sideways(true_point, seed: int, frames: int = 40, gauss_ratio: float = MapSettings().depth_init.gauss_ratio):
     """A camera translating sideways 1 cm per frame from the ray's origin (39 cm in all), 1 px
     matching noise, 5 mm camera uncertainty. Returns the particles at the end and (frame, mean,
     std) when they first passed the Gaussian test (the system's promotion test), or None."""
@@ -100,7 +100,7 @@ def run_sideways(true_point, seed: int, frames: int = 40, gauss_ratio: float = M
             return pinhole(true_point, cam)[0] + rng.normal(0, 1.0, 2), 400.0
 
         step(p, project, match)
-        if decided is None and p.is_gaussian(gauss_ratio) and p.frames >= MapSettings().min_init_frames:
+        if decided is None and p.is_gaussian(gauss_ratio) and p.frames >= MapSettings().depth_init.min_init_frames:
             decided = (p.frames, p.mean, p.std)
     return p, decided
 
@@ -119,14 +119,14 @@ def assert_depth_found(p: DepthParticles, true_depth: float) -> None:
 @pytest.mark.parametrize("true_point", [[0.2, -0.1, 0.8], [0.2, -0.1, 2.3], [-0.3, 0.2, 4.0]])
 def test_particles_converge_on_the_true_depth(true_point):
     """Over the whole baseline the depth pdf closes on the truth (within 10%); it passes the
-    promotion test (MapSettings.gauss_ratio) within the allowed frames, with the truth inside
+    promotion test (MapSettings.depth_init.gauss_ratio) within the allowed frames, with the truth inside
     its 3 sigma then."""
     true_depth = float(np.linalg.norm(true_point))
     for seed in range(4):
         p, decided = run_sideways(true_point, seed)
         assert_depth_found(p, true_depth)
         assert len(p.depths) < 100                     # weak particles were pruned
-        assert decided is not None and decided[0] <= MapSettings().max_init_frames, decided
+        assert decided is not None and decided[0] <= MapSettings().depth_init.max_init_frames, decided
         frame, mean, std = decided
         assert abs(mean - true_depth) < 3 * std + SPACING, (decided, true_depth)
 

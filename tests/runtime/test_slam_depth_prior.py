@@ -92,4 +92,5 @@ def test_the_configured_prior_without_enough_matches_or_when_fixed(case):
     used = natural[:4] if case == "four used" else natural
     for k in add_after(slam, img, used):
         rho, sigma = rho_and_sigma(slam, k)
-        assert rho == pytest.approx(settings.rho0) and sigma == pytest.approx(settings.sigma_rho, rel=1e-6)
+        idp = settings.inverse_depth
+        assert rho == pytest.approx(idp.rho0) and sigma == pytest.approx(idp.sigma_rho, rel=1e-6)

@@ -69,7 +69,7 @@ def test_the_tracker_measures_a_drifting_feature_with_a_larger_variance():
     track.features[k].drift = np.array([2.0, 0.0])
     pred1, S1, r1_scale, _, _ = track.measurement.select(track.map)
     assert list(pred1.ks) == list(pred0.ks)
-    scale = 1.0 + slam.settings.drift_gain * 4.0 / DEFAULT_CONFIG.sigma_pixel**2
+    scale = 1.0 + slam.settings.drift.drift_gain * 4.0 / DEFAULT_CONFIG.sigma_pixel**2
     np.testing.assert_allclose(r1_scale[j], r0_scale[j] * scale)
     # Its noise (the pixel noise times its shape, templates.match_noise_shape) grows by the scale.
     R = DEFAULT_CONFIG.sigma_pixel**2 * r0_scale[j]

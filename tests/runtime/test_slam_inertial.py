@@ -163,7 +163,7 @@ def test_prediction_covariance_is_the_product_of_the_intervals():
     x, P_vv, F_total = s.x[:19].copy(), s.P[:19, :19].copy(), np.eye(19)
     for d, w, f in zip(ds, omegas, fs):
         x, F, G = imu_step_and_jacobians(x, w, f, d)
-        Pn = np.diag(np.r_[np.full(3, CFG.imu_accel_noise**2 / d), np.full(3, CFG.imu_gyro_noise**2 / d)])
+        Pn = np.diag(np.r_[np.full(3, CFG.imu.imu_accel_noise**2 / d), np.full(3, CFG.imu.imu_gyro_noise**2 / d)])
         P_vv = F @ P_vv @ F.T + G @ Pn @ G.T
         F_total = F @ F_total
     bias_walk(P_vv, t1 - t0, CFG)
@@ -207,7 +207,7 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
     Rt = Rotation.from_matrix(R0) * Rotation.from_rotvec(theta)
     w_true = (Rt[:-1].inv() * Rt[1:]).as_rotvec() / dt
     x = np.r_[0.0, 0.0, 0.0, st.quat_of(R0), 0.0, 0.0, 0.0, w_true[0]]
-    sg, sa = CFG.imu_gyro_noise / np.sqrt(dt), CFG.imu_accel_noise / np.sqrt(dt)
+    sg, sa = CFG.imu.imu_gyro_noise / np.sqrt(dt), CFG.imu.imu_accel_noise / np.sqrt(dt)
     rows, states = [], [x]
     for j in range(n):
         a = -2.0 * x[:3] - 1.0 * x[7:10] + 0.4 * np.sin([1.1 * t[j] + ph[3], 0.8 * t[j] + ph[4], 1.5 * t[j] + ph[5]])
@@ -227,8 +227,8 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
     k0 = 0 if t_d is None else 1           # a frame late, so that samples precede it whatever t_d
     x_v = np.r_[states[k0 * per_frame][:13], np.zeros(cam_dim - 13)]
     x_v[:3] += rng.normal(0, 0.003, 3)
-    P_v = st.camera_covariance(x_v[Q_SLICE], 0.003, 1e-3, 0.01, 0.05, cam_dim, cfg.gyro_bias_sigma0,
-                               cfg.accel_bias_sigma0, cfg.time_offset_sigma0)
+    P_v = st.camera_covariance(x_v[Q_SLICE], 0.003, 1e-3, 0.01, 0.05, cam_dim, cfg.imu.gyro_bias_sigma0,
+                               cfg.imu.accel_bias_sigma0, cfg.imu.time_offset_sigma0)
     s = State.from_camera(x_v, P_v)
     sig_y = 0.001
     for y in Y:
@@ -258,7 +258,7 @@ def test_bias_states_converge_to_the_imus_biases(seed, b_g, b_a):
     # Within 3 sigma of the filter's own covariance ...
     assert (np.abs(e_g) < 3 * sd_g).all() and (np.abs(e_a) < 3 * sd_a).all()
     # ... that covariance far below the prior's (the biases were learnt) ...
-    assert (sd_g < 0.3 * CFG.gyro_bias_sigma0).all() and (sd_a < 0.3 * CFG.accel_bias_sigma0).all()
+    assert (sd_g < 0.3 * CFG.imu.gyro_bias_sigma0).all() and (sd_a < 0.3 * CFG.imu.accel_bias_sigma0).all()
     # ... and clearly nearer the truth than the prior's zero.
     assert np.linalg.norm(e_g) < 0.25 * np.linalg.norm(b_g)
     assert np.linalg.norm(e_a) < 0.25 * np.linalg.norm(b_a)
@@ -272,7 +272,7 @@ def test_the_clock_offset_state_converges_to_the_imus_offset(seed, t_d):
     sd = np.sqrt(s.P[TD_INDEX, TD_INDEX])
     print(f"\nclock offset {1000 * s.t_d:.2f} ms (true {1000 * t_d:.1f}, sd {1000 * sd:.2f})")
     assert abs(s.t_d - t_d) < min(3 * sd, 0.001)
-    assert sd < 0.3 * CFG.time_offset_sigma0
+    assert sd < 0.3 * CFG.imu.time_offset_sigma0
 
 
 # -- ImuStream ---------------------------------------------------------------------------------

@@ -67,7 +67,7 @@ def test_a_full_map_drops_unsettled_features_out_of_view_first():
 
 
 def test_inverse_depth_features_convert_below_the_threshold_for_the_image_width():
-    """The linearity threshold follows the image's width (MapSettings.linearity_threshold from
+    """The linearity threshold follows the image's width (MapSettings.inverse_depth.linearity_threshold from
     NARROW_WIDTH_PX wide, linearity_threshold_narrow below), and the tracker's conversion step
     takes exactly the inverse-depth features whose linearity index is below the one in force."""
     settings = MapSettings(use_imu=False, linearity_threshold=0.3, linearity_threshold_narrow=0.7)

@@ -117,9 +117,10 @@ def test_a_loaded_map_makes_a_state_and_a_session_that_starts_lost(slam, tmp_pat
     np.testing.assert_allclose(s.r, saved.T_world_cam[:3, 3])
     assert np.sqrt(s.P[0, 0]) >= 0.5                          # too wide to search: it must re-localise
     if cam_dim >= CAMERA_DIM_BIASED:
-        np.testing.assert_allclose(np.diag(s.P)[13:19], [cfg.gyro_bias_sigma0**2] * 3 + [cfg.accel_bias_sigma0**2] * 3)
+        np.testing.assert_allclose(np.diag(s.P)[13:19], [cfg.imu.gyro_bias_sigma0**2] * 3
+                                   + [cfg.imu.accel_bias_sigma0**2] * 3)
     if cam_dim == CAMERA_DIM_TIMED:
-        assert s.P[19, 19] == cfg.time_offset_sigma0**2 and s.t_d == 0.0
+        assert s.P[19, 19] == cfg.imu.time_offset_sigma0**2 and s.t_d == 0.0
     session = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
     session.start_from_map(saved, 10.0)
     assert session.lost and not session.localised and np.isnan(session.T_world_cam()).all()

@@ -1,4 +1,4 @@
-"""A turn's first frame measured again with the turn's impulses (SlamConfig.adapt_onset,
+"""A turn's first frame measured again with the turn's impulses (SlamConfig.impulses.adapt_onset,
 track.Track.step): the frame whose update first shows the camera turning faster than
 ``adapt_turn_rate`` was predicted with the priors (MonoSLAM's 4 m/s^2 and 6 rad/s^2), which take
 the turn's unforeseen start partly as translation, and the smaller linear impulse a turn then
@@ -63,8 +63,8 @@ def test_a_turn_s_first_frame_is_measured_again_with_the_turn_s_impulses():
     assert len(onsets) == 1 and onsets[0] >= STILL, onsets       # once, as the turn starts, never still
     k = onsets[0]
     s_on = on[k - 1][0]
-    prior = (DEFAULT_CONFIG.sigma_a, DEFAULT_CONFIG.sigma_alpha)
-    assert (s_on.sigma_a, s_on.sigma_alpha) != prior and s_on.sigma_alpha > DEFAULT_CONFIG.sigma_alpha
+    prior = (DEFAULT_CONFIG.motion.sigma_a, DEFAULT_CONFIG.motion.sigma_alpha)
+    assert (s_on.sigma_a, s_on.sigma_alpha) != prior and s_on.sigma_alpha > DEFAULT_CONFIG.motion.sigma_alpha
     assert all((s.sigma_a, s.sigma_alpha) == prior for s, *_ in on[:k - 1])
     # As if the track had predicted that frame with the turn's impulses in the first place.
     forced = _run(frames[:k + 1], uv, False, force={k: (s_on.sigma_a, s_on.sigma_alpha)})

@@ -28,10 +28,10 @@ S = MapSettings()
 RESCUE_99 = 9.21
 
 
-def ransac(state, ks, z, pred, S_prior, rng_seed=0, R_pix=1.0, threshold=S.ransac_threshold_px,
-           max_hypotheses=S.ransac_max_hypotheses):
+def ransac(state, ks, z, pred, S_prior, rng_seed=0, R_pix=1.0, threshold=S.ransac.threshold_px,
+           max_hypotheses=S.ransac.max_hypotheses):
     return one_point_ransac(state, ks, z, CAM, R_pix, pred, S_prior,
-                            RansacSettings(threshold, max_hypotheses, S.ransac_confidence, RESCUE_99),
+                            RansacSettings(threshold, max_hypotheses, S.ransac.confidence, RESCUE_99),
                             np.random.default_rng(rng_seed))
 
 
@@ -116,7 +116,7 @@ def test_keeps_every_inlier_and_rejects_every_outlier(outlier_fraction):
     assert np.median(errors_after) < 0.6 * np.median(errors_before)
     assert rescued > 0                                # both steps of the algorithm at work
     # Fewer inliers take more hypotheses (log(1 - p) / log(1 - w)).
-    assert max(tried) <= S.ransac_max_hypotheses
+    assert max(tried) <= S.ransac.max_hypotheses
 
 
 def test_half_outliers():
@@ -190,8 +190,8 @@ def test_hypotheses_adapt_to_the_inlier_ratio_and_respect_the_cap():
     assert res.hypotheses <= 4
     res = ransac(s.copy(), ks, z, pred, S_prior, 3)
     w = res.low.sum() / len(ks)
-    needed = math.ceil(math.log(1 - S.ransac_confidence) / math.log(1 - w))
-    assert min(needed, S.ransac_max_hypotheses, len(ks)) <= res.hypotheses <= S.ransac_max_hypotheses
+    needed = math.ceil(math.log(1 - S.ransac.confidence) / math.log(1 - w))
+    assert min(needed, S.ransac.max_hypotheses, len(ks)) <= res.hypotheses <= S.ransac.max_hypotheses
 
 
 def test_no_match_and_one_match():
@@ -239,13 +239,13 @@ def test_votes_choose_the_hypothesis_reliable_features_support():
             continue                       # the two groups must be apart and both searchable
         tried += 1
         plain = one_point_ransac(s.copy(), ks, z, CAM, 1.0, pred, S_prior,
-                                 RansacSettings(S.ransac_threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
+                                 RansacSettings(S.ransac.threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
                                  np.random.default_rng(seed))
         votes = np.where(a, 1.0, 0.25)
         # Every match tried as a hypothesis (the adaptive count could stop before drawing one of the
         # smaller group: that is the sampling's chance, not the vote's).
         weighted = one_point_ransac(s, ks, z, CAM, 1.0, pred, S_prior,
-                                    RansacSettings(S.ransac_threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
+                                    RansacSettings(S.ransac.threshold_px, len(ks), 1 - 1e-12, RESCUE_99),
                                     np.random.default_rng(seed), votes=votes)
         assert np.array_equal(weighted.used, a), (seed, gap)
         flipped += np.array_equal(plain.used, ~a)
@@ -268,7 +268,7 @@ def test_the_tracker_votes_by_each_features_record():
                 for i, (a, s) in enumerate(records)]
     np.testing.assert_allclose(measurement.votes(features, np.array([0, 1, 2, 3])), [1 / 3, 61 / 62, 0.5, 1 / 3])
     np.testing.assert_allclose(measurement.votes(features, np.array([3, 1])), [1 / 3, 61 / 62])
-    # A target corner placed by the target's sides this frame votes MapSettings.known_vote.
+    # A target corner placed by the target's sides this frame votes MapSettings.ransac.known_vote.
     measurement.settings = MapSettings(known_vote=5.0)
     np.testing.assert_allclose(measurement.votes(features, np.array([3, 1, 2]), np.array([True, False, False])),
                                [5.0, 61 / 62, 0.5])

@@ -95,7 +95,7 @@ def test_a_quadrilateral_whose_pose_is_half_a_turn_away_is_not_taken(monkeypatch
         stats = [slam.process(img, k / 30) for k in range(1, 9)]
         return st.rotation_error_rad(quat_to_rotation(slam.state.x[3:7]), R), any(s.reacquired for s in stats)
 
-    turn, moved = run(MapSettings().loop_max_turn_rad)
+    turn, moved = run(MapSettings().reacquire.loop_max_turn_rad)
     turn_any, moved_any = run(np.pi)
     print(f"\nrefused: {np.degrees(turn):.1f} deg off; any turn allowed: re-acquired {moved_any}, "
           f"{np.degrees(turn_any):.0f} deg off")

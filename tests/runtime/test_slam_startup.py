@@ -21,6 +21,7 @@ from runtime.slam.system import MonoSLAM
 
 CAM = st.PINHOLE
 S = MapSettings()
+SU = S.startup                    # the start-up's settings (click search, corner fit, ambiguity)
 RECT = st.rectangle(0.21, 0.15)
 CARD_MARGIN = 0.03
 
@@ -53,10 +54,10 @@ def test_clicks_2_to_3_px_off_are_refined_to_0_3_px(view):
     img, uv = scene(view)
     rng = np.random.default_rng(1)
     errors = []
-    exact = refine_clicks(img, Target(RECT, uv), S.click_search_px)
+    exact = refine_clicks(img, Target(RECT, uv), SU.click_search_px)
     for _ in range(6):
         z = clicks(uv, rng)
-        ref = refine_clicks(img, Target(RECT, z), S.click_search_px)
+        ref = refine_clicks(img, Target(RECT, z), SU.click_search_px)
         errors.append(np.linalg.norm(ref.uv - uv, axis=1))
         # The click's error is gone, not only reduced: exact clicks find the same corners.
         np.testing.assert_allclose(ref.uv, exact.uv, atol=1e-6)
@@ -89,8 +90,8 @@ def test_refusals_name_the_problem():
     }
     for name, (xyz, z, message) in cases.items():
         with pytest.raises(SlamStartError, match=message):
-            start_hypotheses(CAM, img, Target(xyz, z), S.click_search_px, S.start_pixel_sigma, S.start_max_rms_px,
-                             S.ambiguity_ratio)
+            start_hypotheses(CAM, img, Target(xyz, z), SU.click_search_px, SU.start_pixel_sigma, SU.start_max_rms_px,
+                             SU.ambiguity_ratio)
     # MonoSLAM.start refuses the same way, and has not started.
     slam = MonoSLAM(CAM)
     with pytest.raises(SlamStartError, match="no corner within"):
@@ -98,7 +99,7 @@ def test_refusals_name_the_problem():
     assert not slam.started
     # A plain image, whatever the clicks.
     with pytest.raises(SlamStartError, match="no corner within"):
-        refine_clicks(np.full_like(img, 128), Target(RECT, uv), S.click_search_px)
+        refine_clicks(np.full_like(img, 128), Target(RECT, uv), SU.click_search_px)
 
 
 # -- the pose and its uncertainty --------------------------------------------------------------
@@ -112,7 +113,7 @@ def pose_nees(view: str, trials: int, seed: int, sigma_px: float = 0.5, nearest:
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(trials):
-        hyps = pose_hypotheses(CAM, RECT, uv + rng.normal(0, sigma_px, uv.shape), sigma_px, S.ambiguity_ratio)
+        hyps = pose_hypotheses(CAM, RECT, uv + rng.normal(0, sigma_px, uv.shape), sigma_px, SU.ambiguity_ratio)
         nees = []
         for h in hyps:
             e = np.r_[Rotation.from_matrix(h.R_world_cam.T @ R_true).as_rotvec(), r_true - h.r]
@@ -146,12 +147,12 @@ def test_a_far_frontal_target_keeps_both_planar_poses_a_near_oblique_one_keeps_o
     for view, expected in (("far frontal", 2), ("near oblique", 1), ("far oblique", 1)):
         img, uv = scene(view)
         R_true, r_true = VIEWS[view]
-        ref, hyps = start_hypotheses(CAM, img, Target(RECT, clicks(uv, np.random.default_rng(5))), S.click_search_px,
-                                     S.start_pixel_sigma, S.start_max_rms_px, S.ambiguity_ratio)
+        ref, hyps = start_hypotheses(CAM, img, Target(RECT, clicks(uv, np.random.default_rng(5))), SU.click_search_px,
+                                     SU.start_pixel_sigma, SU.start_max_rms_px, SU.ambiguity_ratio)
         assert len(hyps) == expected, (view, [h.chi2 for h in hyps])
         assert hyps[0].chi2 <= hyps[-1].chi2
         # Each explains the refined corners (RMS within the start's limit) ...
-        assert all(h.rms_px < S.start_max_rms_px for h in hyps)
+        assert all(h.rms_px < SU.start_max_rms_px for h in hyps)
         # ... one of them is the true pose, and they are genuinely different poses.
         err = [np.linalg.norm(h.r - r_true) for h in hyps]
         assert min(err) < 0.02 * np.linalg.norm(r_true)
@@ -173,7 +174,7 @@ def test_camera_prior_maps_the_pose_covariance_into_the_state():
     """The camera block's position and quaternion covariance is the pose covariance pushed
     through q(R Exp(theta)): sampled poses' quaternions have that covariance."""
     R, r = VIEWS["near oblique"]
-    h = pose_hypotheses(CAM, RECT, st.pixels(CAM, R, r, RECT), 0.5, S.ambiguity_ratio)[0]
+    h = pose_hypotheses(CAM, RECT, st.pixels(CAM, R, r, RECT), 0.5, SU.ambiguity_ratio)[0]
     x_v, P = h.camera_prior(0.3, 0.5, 19)
     assert x_v.shape == (19,) and P.shape == (19, 19)
     np.testing.assert_allclose(quat_to_rotation(x_v[3:7]), h.R_world_cam, atol=1e-12)
@@ -199,9 +200,9 @@ def _still_rows(R_world_cam, b_g, b_a, seconds, rng, t_end=0.0, rate=200.0, wobb
     cfg = SlamConfig()
     t = t_end - np.arange(int(seconds * rate), -1, -1) / rate
     f = R_world_cam.T @ np.array([0.0, 0.0, 9.81])
-    w = b_g + rng.normal(0, cfg.imu_gyro_noise * np.sqrt(rate), (len(t), 3)) \
+    w = b_g + rng.normal(0, cfg.imu.imu_gyro_noise * np.sqrt(rate), (len(t), 3)) \
         + wobble * np.sin(2 * np.pi * 1.5 * t)[:, None]
-    a = f + b_a + rng.normal(0, cfg.imu_accel_noise * np.sqrt(rate), (len(t), 3))
+    a = f + b_a + rng.normal(0, cfg.imu.imu_accel_noise * np.sqrt(rate), (len(t), 3))
     return np.column_stack([t, w, a])
 
 
@@ -217,14 +218,14 @@ def test_a_still_stretch_before_the_start_gives_the_biases(view="near oblique"):
     s = slam.state
     sd_g, sd_a = np.sqrt(np.diag(s.P)[13:16]), np.sqrt(np.diag(s.P)[16:19])
     assert slam.still is not None and slam.still.seconds == pytest.approx(1.0, abs=0.01)
-    assert np.all(np.abs(s.b_g - b_g) < 3 * sd_g) and np.all(sd_g < 0.1 * slam.cfg.gyro_bias_sigma0)
+    assert np.all(np.abs(s.b_g - b_g) < 3 * sd_g) and np.all(sd_g < 0.1 * slam.cfg.imu.gyro_bias_sigma0)
     # The accelerometer's bias rests on the start's attitude (its error times g): within its
     # sigma of the truth, and correlated with the attitude so that, the attitude known, it is
     # known far better than the part's prior.
     assert np.all(np.abs(s.b_a - b_a) < 3 * sd_a)
     P = s.P
     cond = P[16:19, 16:19] - P[16:19, 3:7] @ np.linalg.pinv(P[3:7, 3:7], rcond=1e-10) @ P[3:7, 16:19]
-    assert np.all(np.sqrt(np.diag(cond)) < 0.1 * slam.cfg.accel_bias_sigma0)
+    assert np.all(np.sqrt(np.diag(cond)) < 0.1 * slam.cfg.imu.accel_bias_sigma0)
     assert np.all(np.sqrt(np.diag(cond)) < 0.5 * sd_a)
     assert any("still" in m for m in slam.messages)
 
@@ -239,7 +240,7 @@ def test_no_still_stretch_keeps_the_parts_prior(seconds, wobble, view="near obli
     slam.start(img, 0.0, Target(RECT, uv))
     s = slam.state
     assert slam.still is None
-    np.testing.assert_allclose(np.sqrt(np.diag(s.P)[13:16]), slam.cfg.gyro_bias_sigma0)
+    np.testing.assert_allclose(np.sqrt(np.diag(s.P)[13:16]), slam.cfg.imu.gyro_bias_sigma0)
     np.testing.assert_allclose(s.b_g, 0.0)
 
 
@@ -256,7 +257,7 @@ def test_the_sides_place_the_corners_better_than_the_corner_fit(view):
     errs_c, errs_e = [], []
     for _ in range(4):
         noisy = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
-        ref = refine_clicks(noisy, Target(RECT, clicks(uv, rng)), S.click_search_px)
+        ref = refine_clicks(noisy, Target(RECT, clicks(uv, rng)), SU.click_search_px)
         edged = refine_by_edges(CAM, noisy, ref.uv)
         assert edged is not None
         errs_c.append(np.linalg.norm(ref.uv - uv, axis=1))
@@ -279,10 +280,10 @@ def test_a_small_grazing_target_starts_from_its_sides_where_the_corner_fit_is_pi
     rng = np.random.default_rng(2)
     for _ in range(3):
         target = Target(RECT, clicks(uv, rng))
-        corner_fit = refine_clicks(img, target, S.click_search_px)
+        corner_fit = refine_clicks(img, target, SU.click_search_px)
         assert np.linalg.norm(corner_fit.uv - uv, axis=1).max() > 1.5       # the case this is about
-        ref, hyps = start_hypotheses(CAM, img, target, S.click_search_px, S.start_pixel_sigma, S.start_max_rms_px,
-                                     S.ambiguity_ratio)
+        ref, hyps = start_hypotheses(CAM, img, target, SU.click_search_px, SU.start_pixel_sigma, SU.start_max_rms_px,
+                                     SU.ambiguity_ratio)
         assert np.linalg.norm(ref.uv - uv, axis=1).max() < 0.2
         assert hyps[0].rms_px < 0.2
 
@@ -297,7 +298,7 @@ def test_the_sides_follow_a_distorted_lens(lens):
     R, r = st.viewpoint(0.5, 60.0)
     img = st.render_target_scene(cam, R, r, RECT, card_margin=CARD_MARGIN, background=st.texture(1))
     uv = st.pixels(cam, R, r, RECT)
-    ref = refine_clicks(img, Target(RECT, clicks(uv, np.random.default_rng(3))), S.click_search_px)
+    ref = refine_clicks(img, Target(RECT, clicks(uv, np.random.default_rng(3))), SU.click_search_px)
     edged = refine_by_edges(cam, img, ref.uv)
     assert edged is not None and np.linalg.norm(edged - uv, axis=1).max() < 0.1
     assert refine_by_edges(cam, img, ref.uv[[0, 2, 1, 3]]) is None                 # a bow tie

@@ -27,8 +27,8 @@ def test_the_status_follows_the_start_a_loss_and_a_saved_maps_relocalisation(tmp
     saved = load_map(save_map(tmp_path / "m.npz", slam), su.CAM)
     # A blank view matches nothing: recently lost for lost_after - 1 frames, then lost.
     blank = np.full_like(img, 128)
-    seen = [slam.process(blank, (6 + k) / 30) and slam.status for k in range(SETTINGS.lost_after)]
-    assert seen == [TrackingStatus.RECENTLY_LOST] * (SETTINGS.lost_after - 1) + [TrackingStatus.LOST]
+    seen = [slam.process(blank, (6 + k) / 30) and slam.status for k in range(SETTINGS.relocalisation.lost_after)]
+    assert seen == [TrackingStatus.RECENTLY_LOST] * (SETTINGS.relocalisation.lost_after - 1) + [TrackingStatus.LOST]
     assert slam.lost and not slam.localised
 
     session = MonoSLAM(su.CAM, settings=SETTINGS)

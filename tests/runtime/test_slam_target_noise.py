@@ -47,7 +47,7 @@ def test_measure_settings_keep_new_features_below_what_is_measured():
     import pytest
 
     s = MapSettings().with_measure(30)
-    assert (s.measure_max, s.visible_min) == (30, 24)
-    assert MapSettings().with_measure(3).visible_min == 3
+    assert (s.measure.measure_max, s.measure.visible_min) == (30, 24)
+    assert MapSettings().with_measure(3).measure.visible_min == 3
     with pytest.raises(ValueError, match="visible_min = 48 exceeds measure_max = 30"):
         replace(MapSettings(), measure_max=30)

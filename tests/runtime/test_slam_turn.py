@@ -1,5 +1,5 @@
 """A head's fast turn seen only through new features: the constant-velocity model's angular
-impulse (SlamConfig.sigma_alpha) decides whether the filter follows it as a turn.
+impulse (SlamConfig.motion.sigma_alpha) decides whether the filter follows it as a turn.
 
 A camera at rest in a room of points 0.5-3 m away pans by 48 degrees at 30 rad/s^2 (accelerating,
 then braking, as a head's gaze shift), and every feature it measures is an inverse-depth feature
@@ -10,8 +10,8 @@ variances do: with MonoSLAM's hand-held 6 rad/s^2 the turn's start is taken part
 translation (2-6 cm and 1.5-4 degrees off after the turn), with 12 it is followed (under 1.5 cm
 and 1 degree). This is the desk gaze-away failures' mechanism (benchmarks/NOTES.md). The prior
 stays at 6, which holds the walks and the recovery from a drifted pose better; a track raises
-it while its own rate estimates show a manoeuvre (SlamConfig.adapt_sigma_alpha) and lowers the
-linear impulse while it turns fast (SlamConfig.adapt_sigma_a, test_slam_impulse.py)."""
+it while its own rate estimates show a manoeuvre (SlamConfig.impulses.adapt_sigma_alpha) and lowers the
+linear impulse while it turns fast (SlamConfig.impulses.adapt_sigma_a, test_slam_impulse.py)."""
 
 from __future__ import annotations
 
@@ -103,7 +103,7 @@ def test_a_fast_turn_is_split_between_rotation_and_orbit_as_the_angular_impulse_
 
 def test_a_track_that_adapts_its_angular_impulse_follows_the_turn():
     """The same pan with the prior at MonoSLAM's 6 rad/s^2 and the angular impulse adapted as a
-    track does (SlamConfig.adapt_sigma_alpha): the turn's start raises it within two frames and
+    track does (SlamConfig.impulses.adapt_sigma_alpha): the turn's start raises it within two frames and
     the turn is followed as with 12 throughout; without adapting it is not (the test above)."""
     cfg = SlamConfig(sigma_alpha=6.0)
     adapted = np.array([turn_errors(cfg, seed, adapt=True) for seed in range(4)])
