@@ -52,3 +52,19 @@ def test_a_task_that_only_observes_slam_says_it_wrote_its_trajectory(tmp_path, c
     said = capsys.readouterr().out.splitlines()[-1]
     assert said.startswith(f"wrote {out}:") and "joints.csv" in said
     assert "trajectory.tum" in said and (out / "trajectory.tum").exists()
+
+
+def test_path_b_after_a_head_motion_start_holds_the_head_where_the_motion_ended(tmp_path):
+    out = tmp_path / "hb"
+    assert main(["sim", "run", "--task", "body", "--scenario", "office-static", "--seed", "1", "--start",
+                 "head-motion", "--seconds", "9", "--no-session-log", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert 3.0 < s["slam_start_s"] < 8.0 and abs(s["start_map_scale_error"]) < 0.05 and s["ate_rmse_m"] < 0.02
+    with open(out / "joints.csv") as fh:
+        rows = [(float(r["t"]), float(r["cmd_pan"]), float(r["cmd_elevation"])) for r in csv.DictReader(fh)]
+    t, pan, elev = (np.array(c) for c in zip(*rows))
+    before, after = t - t[0] < s["slam_start_s"], t - t[0] > s["slam_start_s"] + 0.5
+    assert np.ptp(np.degrees(pan[before])) > 15                # the start's motion ran first
+    # then the task: the head holds its direction on the still wearer's body
+    assert np.ptp(np.degrees(pan[after])) < 0.5 and np.ptp(np.degrees(elev[after])) < 0.5
+    assert s["pitch_max_dev_deg"] < 2.0                         # scored from the task's start
