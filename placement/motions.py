@@ -135,6 +135,30 @@ def stand_then(body: Body, then, first_s: float, seconds: float, rate_hz: float 
                   np.concatenate([a.root_m * fade[:, None], b.root_m]))
 
 
+def turn_round(body: Body, seconds: float = 30.0, rate_hz: float = 30.0, turns: int = 4, angle_deg: float = 90.0,
+               first_s: float = 5.0, turn_s: float = 3.0, pause_s: float = 3.25) -> Motion:
+    """Standing in one place and turning round to the left in steps: still (:func:`stand`) for
+    ``first_s``, then ``turns`` turns of ``angle_deg`` each (:func:`turn`: its stepping and the
+    head's lead) over ``turn_s``, each followed by ``pause_s`` standing. The schedule is fixed: a
+    shorter ``seconds`` cuts it, a longer one ends standing. The default is a whole turn round
+    a room in 30 s."""
+    base = stand(body, seconds, rate_hz)           # sway and breathing throughout
+    rv, root = base.rotvec.copy(), base.root_m.copy()
+    one = turn(body, turn_s, rate_hz, angle_deg)
+    pelvis = SEGMENT_INDEX["pelvis"]
+    for k in range(turns):
+        i0 = int(round((first_s + k * (turn_s + pause_s)) * rate_hz))
+        n = min(len(one.t), len(base.t) - i0)
+        if n <= 0:
+            break
+        rv[i0:i0 + n] += one.rotvec[:n]
+        root[i0:i0 + n] += one.root_m[:n]
+        # After the turn the body keeps its new heading (the turn's last sample is within a
+        # hair of the full angle: the ramp is flat there).
+        rv[i0 + n:, pelvis, 2] += D(angle_deg)
+    return Motion("turn-round", base.t, rv, root)
+
+
 PROCEDURAL = {"walk": walk, "sit-down": sit_down, "turn": turn, "reach": reach}
 
 

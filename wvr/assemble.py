@@ -42,9 +42,11 @@ def wearer_for(scenario, seconds: float):
         m = motions.sit_down(body, seconds)
     elif scenario.motion == "stand-then-sit-down":
         m = motions.stand_then(body, motions.sit_down, STAND_FIRST_S, seconds)
+    elif scenario.motion == "turn-round":
+        m = motions.turn_round(body, seconds)
     else:
         raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down, "
-                         "stand-then-sit-down")
+                         "stand-then-sit-down, turn-round")
     G = scenario.T_world_body() @ body.segment_transforms(m)
     return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
 

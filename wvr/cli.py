@@ -402,7 +402,7 @@ def cmd_sim_run(args) -> int:
         finally:
             twin.close()
     print(Path(args.out, "report.md").read_text().split("![")[0].strip())
-    # Only what this task wrote (a task without SLAM writes no trajectory.tum).
+    # Only what this run wrote (SLAM that could not start writes no trajectory.tum).
     names = ("groundtruth.txt", "trajectory.tum", "task.toml", "joints.csv", "prompts.csv", "head.toml", "report.md")
     print(f"wrote {args.out}: " + ", ".join(n for n in names if Path(args.out, n).exists()))
     return 0 if not s["refusals"] else 1
@@ -749,7 +749,8 @@ def _run_on_rig(args, cfg, out: Path, task, start, settings) -> int:
         rec.notes.update(safe_stop=stop, safety=rep.__dict__)
         rec.finish(complete, reason or "stopped")
     print(Path(out, "report.md").read_text().split("![")[0].strip())
-    print(f"wrote {out}: rgb/, rgb.txt, imu.txt, joints.txt, camera.toml, head.toml, target.toml, trajectory.tum, "
+    slam = ", trajectory.tum" if (out / "trajectory.tum").exists() else ""   # none without a start target
+    print(f"wrote {out}: rgb/, rgb.txt, imu.txt, joints.txt, camera.toml, head.toml, target.toml{slam}, "
           f"joints.csv, session.json ({'complete' if complete else 'INCOMPLETE: ' + reason}); safe stop: {stop}")
     return 0 if not s["refusals"] else 1
 
@@ -923,9 +924,11 @@ def _start_option(p: argparse.ArgumentParser, fixate_default: str) -> None:
     from runtime.apps.closed_loop import STARTS
 
     p.add_argument("--start", choices=list(STARTS), default="target",
-                   help="how SLAM starts: target (the printed target's clicked corners, the default) or head-motion "
+                   help="how SLAM starts (every task runs it; stabilise, body and track only observe it): target "
+                        "(the printed target's clicked corners, the default) or head-motion "
                         "(no target: once the wearer keeps still, the head goes twice round a box in pan and "
-                        "elevation, and that known motion fixes the scale; targets are then in its world frame: "
+                        "elevation, and that known motion fixes the scale, then the task begins; not with track; "
+                        "targets are then in its world frame: "
                         f"origin at the first camera, z up, x ahead; fixate's default target is {fixate_default})")
 
 

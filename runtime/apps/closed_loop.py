@@ -22,6 +22,10 @@ Tasks
              (default 1.5 s) after each landing, then choose again.
 ``track``    keep a 2D tracker's target centred (by default the start-up target's clicked
              rectangle, grown to take in its surround), the tracker seeing only the images.
+
+Every task runs SLAM where it can start (trajectory.tum, scored like fixate's); fixate, saccade
+and explore steer by its pose, stabilise, body and track only observe it (their commands are
+those of a run without it).
 """
 
 from __future__ import annotations
@@ -106,8 +110,9 @@ class Task:
     recentre_per_s : stabilise: the gain of Path A's visual outer loop (runtime.apps.recentre),
     1/s; 0 (default) holds the attitude from the IMU alone. start : how SLAM starts: ``target``
     (the known target's clicked corners) or ``head-motion`` (no target: the head's own known
-    motion fixes the scale, runtime.apps.head_motion; targets are then in the world frame that
-    start makes, and fixate's default target is the clicked point or the image's centre)."""
+    motion fixes the scale, runtime.apps.head_motion, and the task begins after it; not with
+    track; targets are then in the world frame that start makes, and fixate's default target is
+    the clicked point or the image's centre)."""
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -122,9 +127,10 @@ class Task:
             raise ValueError(f"task {self.kind!r} unknown; choose one of {', '.join(TASKS)}")
         if self.start not in STARTS:
             raise ValueError(f"start {self.start!r} unknown; choose one of {', '.join(STARTS)}")
-        if self.start == "head-motion" and self.kind not in ("fixate", "saccade", "explore"):
-            raise ValueError(f"--start head-motion starts SLAM: give it with task fixate, saccade or explore, "
-                             f"not {self.kind}")
+        if self.start == "head-motion" and self.kind == "track":
+            raise ValueError("--start head-motion moves the head before the task, and track learns its region from "
+                             "the first image, which that motion takes away: start track from the target "
+                             "(--start target)")
         t = np.asarray(self.targets, float).reshape(-1, 3)
         if not np.isfinite(t).all():
             raise ValueError("task targets must be finite world points (x, y, z) m")
@@ -146,6 +152,8 @@ class Task:
 
     @property
     def uses_slam(self) -> bool:
+        """Whether the control rests on SLAM's pose (fixate, saccade, explore). The other tasks
+        run SLAM too, observed and scored but never fed to the controller."""
         return self.kind in ("fixate", "saccade", "explore")
 
 
@@ -324,7 +332,7 @@ class ClosedLoop:
     def start(self, obs: Observation) -> None:
         if callable(self.start_target):
             self.start_target = self.start_target(obs)
-        if self.task.uses_slam:
+        if self.task.uses_slam or self.task.start == "head-motion" or self.start_target is not None:
             self.slam = MonoSLAM(self.info.camera, slam_config(self.info), imu=True)
             if self.task.start == "head-motion":
                 self.head_start = HeadMotionPhase(self.info.head, self.info.camera, obs.q)
@@ -337,6 +345,9 @@ class ClosedLoop:
             lo, hi = self.region_uv.min(axis=0), self.region_uv.max(axis=0)
             init = self.region_uv if self.task.method == "hyperplane" and self.task.region is None else (*lo, *(hi - lo))
             self.tracker = make_tracker(self.task.method, obs.image, init)
+        if self.slam is None:
+            self.log.events.append({"t": obs.t, "event": "start", "text": f"SLAM not run: task {self.task.kind} was "
+                                    "given no start target to start it from (SLAM is only observed in this task)"})
         self._q_prev = np.asarray(obs.q, float).copy()
         self._i = 0
         self._basis_t = obs.t
@@ -507,6 +518,10 @@ class ClosedLoop:
         lost = bool(slam is not None and not slam.localised)
         T_est = slam.T_world_cam() if slam is not None and not lost else None
         v_est = slam.state.v.copy() if T_est is not None else None
+        # Stabilise, body and track run SLAM to be scored, not to be steered by: their control
+        # gets no pose unless an operator has taken over (a saccade needs one).
+        drives = self.task.uses_slam or self.external
+        T_ctl, v_ctl = (T_est, v_est) if drives else (None, None)
         if begin and not self.external:
             # The first IMU rows arrive with the first step, and the mount's pose is known once
             # the controller has stepped once: the task starts then.
@@ -548,7 +563,7 @@ class ClosedLoop:
         kind = self._kind
         if self.head_start is not None:
             self._basis_t = obs.t          # the start's motion rests on the encoders alone
-        elif kind in ("fixate", "saccade", "explore", "hold") and slam is not None:
+        elif kind in ("fixate", "saccade", "explore", "hold") and slam is not None and drives:
             if T_est is not None:
                 self._basis_t = obs.t
         elif kind == "stabilise":
@@ -559,7 +574,7 @@ class ClosedLoop:
                 self._basis_t = obs.t
         else:
             self._basis_t = None
-        cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_est, v_world=v_est)
+        cmd = ctl.step(obs.t, imu, obs.q, T_world_cam=T_ctl, v_world=v_ctl)
         if cmd.landed:
             if self._kind == "explore":
                 self._explore_landed_t = obs.t

@@ -148,15 +148,16 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
     times = log.times
     after = times >= times[0] + 1.0
     targets = log.column("target") if task.kind in ("fixate", "saccade") else None
-    if task.uses_slam and task.start == "head-motion":
-        s.update(_head_motion_scores(times, np.array([r.T_est for r in log.rows]), T_true))
+    T_est = np.array([r.T_est for r in log.rows])
+    if task.start == "head-motion":
+        s.update(_head_motion_scores(times, T_est, T_true))
         A = s.pop("T_true_est", None)
         if targets is not None and A is not None:
             # The targets are in the start's world: the truth's through the start-frame alignment.
             A = np.asarray(A)
             targets = targets @ A[:3, :3].T + A[:3, 3]
-    elif task.uses_slam:
-        T_est = np.array([r.T_est for r in log.rows])
+    elif np.isfinite(T_est).any():
+        # Every task runs SLAM where it can start (observed only in stabilise, body and track).
         e = trajectory_errors(Trajectory.from_T_world_cam(times, T_est), Trajectory.from_T_world_cam(times, T_true))
         s.update(ate_rmse_m=e.ate_rmse_m, ate_max_m=e.ate_max_m)
     if task.kind in ("fixate", "saccade"):
@@ -169,9 +170,11 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
             s.update(fixation_rms_deg=float(np.sqrt(np.mean(err[after] ** 2))), fixation_peak_deg=float(err[after].max()))
         if task.kind == "saccade":
             s["landings"] = _landings(times, err, log.events)
-    if task.kind in ("stabilise", "body"):
+    if task.kind in ("stabilise", "body") and s.get("slam_started", True):
+        # The attitude held is the one at the task's start (after a head-motion start's motion).
+        k0 = int(np.searchsorted(times, times[0] + s["slam_start_s"] - 1e-9)) if "slam_start_s" in s else 0
         pr = np.degrees(pitch_roll(T_true[:, :3, :3]))
-        dev = np.abs(pr - pr[0])
+        dev = np.abs(pr[k0:] - pr[k0])
         s.update(pitch_max_dev_deg=float(dev[:, 0].max()), roll_max_dev_deg=float(dev[:, 1].max()),
                  pitch_rms_dev_deg=float(np.sqrt(np.mean(dev[:, 0] ** 2))),
                  roll_rms_dev_deg=float(np.sqrt(np.mean(dev[:, 1] ** 2))))

@@ -4,7 +4,7 @@ recording's head does.
 The place (``Scenario.scene``) is a workbench, a kitchen counter or an office desk, each with
 its own known target (:mod:`runtime.twin.workbench`, :mod:`.kitchen`, :mod:`.office`); its
 textures and layout come from the scene seed. The body's motion is named (``stand``, ``walk``,
-``sit-down``, ``stand-then-sit-down``) and supplied by whoever builds the wearer (the placement motions, through
+``sit-down``, ``stand-then-sit-down``, ``turn-round``) and supplied by whoever builds the wearer (the placement motions, through
 ``wvr``); the scenario places the body in the world (``body_xy``, ``body_yaw``: the body frame
 faces -y rotated by the yaw) and says what the scripted head looks at in a recording (the
 closed loop replaces the script by a controller).
@@ -220,6 +220,11 @@ SCENARIOS: dict[str, Scenario] = {
                                 scene=OfficeDesk()),
     # The 21 x 15 cm target pinned to the wall at eye height, seen nearly frontally from about
     # 1.2 m by a small sweep (the planar PnP ambiguity case; the same place as office-static).
+    # Standing mid-room, 45 cm back from the workbench, and turning round in place to the left:
+    # four 90 deg turns of 3 s, each after a pause (5 s still first, then 3.25 s after each). The
+    # target on the bench is in view at the start only; the posters on all four sides and the
+    # floor are what the map must grow over. The head rides the body in a recording.
+    "turn-round-room": Scenario("turn-round-room", "turn-round", 30.0, (0.0, 0.05), 0.0, "still"),
     "office-far-target": Scenario("office-far-target", "stand", 12.0, (-0.25, -0.05), 0.0, "sweep",
                                   scene=OfficeDesk(known="wall")),
 }

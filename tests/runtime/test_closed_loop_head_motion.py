@@ -36,20 +36,35 @@ def test_a_still_wearer_gets_a_metric_map_from_the_heads_motion(tmp_path):
     assert np.ptp(np.degrees(pan)) > 15             # the start's motion did happen
 
 
-@pytest.mark.parametrize("task, words", [("stabilise", "with task fixate, saccade or explore"),
-                                         ("body", "with task fixate, saccade or explore")])
-def test_head_motion_start_on_a_task_without_slam_is_refused(tmp_path, capsys, task, words):
-    code = main(["sim", "run", "--task", task, "--scenario", "workbench-static", "--start", "head-motion",
+def test_head_motion_start_with_track_is_refused_with_the_reason(tmp_path, capsys):
+    code = main(["sim", "run", "--task", "track", "--scenario", "workbench-static", "--start", "head-motion",
                  "--seconds", "1", "--out", str(tmp_path / "x")])
     assert code == 2
-    assert words in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "track learns its region from the first image" in err and "--start target" in err
     assert not (tmp_path / "x" / "summary.json").exists()
 
 
-def test_a_task_without_slam_does_not_say_it_wrote_a_trajectory(tmp_path, capsys):
+def test_a_task_that_only_observes_slam_says_it_wrote_its_trajectory(tmp_path, capsys):
     out = tmp_path / "b"
     assert main(["sim", "run", "--task", "body", "--scenario", "workbench-static", "--seconds", "0.5",
                  "--no-session-log", "--out", str(out)]) == 0
     said = capsys.readouterr().out.splitlines()[-1]
     assert said.startswith(f"wrote {out}:") and "joints.csv" in said
-    assert "trajectory.tum" not in said and not (out / "trajectory.tum").exists()
+    assert "trajectory.tum" in said and (out / "trajectory.tum").exists()
+
+
+def test_path_b_after_a_head_motion_start_holds_the_head_where_the_motion_ended(tmp_path):
+    out = tmp_path / "hb"
+    assert main(["sim", "run", "--task", "body", "--scenario", "office-static", "--seed", "1", "--start",
+                 "head-motion", "--seconds", "9", "--no-session-log", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert 3.0 < s["slam_start_s"] < 8.0 and abs(s["start_map_scale_error"]) < 0.05 and s["ate_rmse_m"] < 0.02
+    with open(out / "joints.csv") as fh:
+        rows = [(float(r["t"]), float(r["cmd_pan"]), float(r["cmd_elevation"])) for r in csv.DictReader(fh)]
+    t, pan, elev = (np.array(c) for c in zip(*rows))
+    before, after = t - t[0] < s["slam_start_s"], t - t[0] > s["slam_start_s"] + 0.5
+    assert np.ptp(np.degrees(pan[before])) > 15                # the start's motion ran first
+    # then the task: the head holds its direction on the still wearer's body
+    assert np.ptp(np.degrees(pan[after])) < 0.5 and np.ptp(np.degrees(elev[after])) < 0.5
+    assert s["pitch_max_dev_deg"] < 2.0                         # scored from the task's start
