@@ -136,10 +136,15 @@ class GlanceSchedule:
 
     def step(self, t: float) -> str | None:
         """``"return"`` when the head should go back to the target now (the dwell is over, or
-        the saccade out did not land in time); the phase becomes ``back``."""
+        the saccade out did not land in time; the phase becomes ``back``); ``"resume"`` when the
+        saccade back has not landed in time either (the phase becomes ``fixating``: the loop
+        fixates the target again as the task does)."""
         s = self.settings
         if (self.phase == "at" and t - self._t_phase >= s.dwell_s) or \
                 (self.phase == "out" and t - self._t_phase >= s.give_up_s):
             self.phase, self._t_phase = "back", t
             return "return"
+        if self.phase == "back" and t - self._t_phase >= s.give_up_s:
+            self.phase, self._t_end, self.point = "fixating", t, None
+            return "resume"
         return None

@@ -132,9 +132,11 @@ def test_the_schedule_goes_out_dwells_comes_back_and_waits():
     g.landed(1.2)
     assert g.phase == "fixating" and not g.away and g.point is None
     assert not g.due(5.1, 0.05) and g.due(5.2, 0.05)    # min_interval_s after it ended at 1.2 s
-    # A saccade out that never lands comes back after give_up_s.
+    # A saccade out that never lands comes back after give_up_s, and one back that never lands
+    # gives the target to the task's fixation after give_up_s again.
     g.begin(6.0, np.zeros(3))
     assert g.step(7.4) is None and g.step(7.5) == "return"
+    assert g.step(8.9) is None and g.step(9.0) == "resume" and g.phase == "fixating"
     assert g.count == 2
 
 
