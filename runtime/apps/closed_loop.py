@@ -508,8 +508,11 @@ class ClosedLoop:
             return
         q = np.asarray(obs.q, float)
         T_world_mount = slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
-        ch = choose_glance(self.info.head, self.info.camera, slam.state, T_world_mount, q, slam.cfg.sigma_pixel, v,
-                           g.settings, map_points_world=slam.world_points())
+        # The dwell's frames each measure the view: their information adds, as one update whose
+        # pixel noise is the filter's over the frames' count.
+        frames = max(1, round(g.settings.dwell_s / self.dt))
+        ch = choose_glance(self.info.head, self.info.camera, slam.state, T_world_mount, q,
+                           slam.cfg.sigma_pixel / math.sqrt(frames), v, g.settings, map_points_world=slam.world_points())
         self.glance_choice = ch
         for k in np.argsort(-ch.score):
             if ch.best < 0 or not ch.score[k] >= g.settings.min_gain_nats:

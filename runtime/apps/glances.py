@@ -11,7 +11,8 @@ The view: among the head's reachable views (the explore candidates, runtime.apps
 one whose predicted measurements bring the most information along ``v``:
 ``0.5 ln(w' Sigma w / w' Sigma+ w)`` with ``w = (v, 0)`` in the pose's (position, rotation)
 space, ``Sigma`` the pose covariance carried through the head's motion and ``Sigma+`` after the
-view's EKF update (the filter's own Jacobians and pixel noise). A view bringing less than
+view's EKF update (the filter's own Jacobians; the pixel noise is the filter's over the square
+root of the dwell's frames, each of which measures the view). A view bringing less than
 ``min_gain_nats`` is not worth leaving the target for: no glance.
 
 The schedule: saccade to the view (``out``), stay ``dwell_s`` once landed (``at``; a saccade that

@@ -145,3 +145,41 @@ def test_bad_glance_settings_are_refused_with_the_bound():
         GlanceSettings(bound_m=0.0)
     with pytest.raises(ValueError, match="min_interval_s"):
         GlanceSettings(min_interval_s=float("nan"))
+
+
+def test_glances_on_the_twin_leave_the_target_land_come_back_and_are_scored_apart(tmp_path, monkeypatch):
+    import csv
+    import json
+
+    import runtime.apps.closed_loop as closed_loop
+    from runtime.apps.evaluate import fixation_errors
+    from runtime.sequence import read_trajectory
+    from wvr.cli import main
+
+    # A bound every pose passes and no floor on the gain: the glances' path runs whatever the map.
+    monkeypatch.setattr(closed_loop, "GlanceSettings",
+                        lambda: GlanceSettings(bound_m=1e-4, min_gain_nats=0.0, min_interval_s=1.0))
+    out = tmp_path / "run"
+    code = main(["sim", "run", "--scenario", "office-static", "--task", "fixate", "--glances", "--seconds", "7",
+                 "--seed", "1", "--out", str(out), "--no-session-log"])
+    assert code == 0
+    s = json.loads((out / "summary.json").read_text())
+    ev = s["events"]
+    out_ev = [e for e in ev if e["event"] == "glance"]
+    end_ev = [e for e in ev if e["event"] == "glance-end"]
+    assert len(out_ev) >= 2 and len(end_ev) >= 1 and s["glances"] == len(out_ev)
+    assert all(e["gain_nats"] > 0 and e["sigma_m"] > 1e-4 for e in out_ev)
+    assert s["glance_interval_s"] >= 1.0 and s["glance_away_s"] > 0.5
+    with open(out / "joints.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    targets = np.array([[float(r[f"target_{a}"]) for a in "xyz"] for r in rows])
+    gt = read_trajectory(out / "groundtruth.txt")
+    err = np.degrees(fixation_errors(gt.T_world_cam(), targets))
+    # The head reached each glance's view: landed within 3 deg of it, far from the task's target.
+    task_target = targets[0]
+    for e in out_ev[:-1]:
+        k = [int(np.argmin(np.abs(gt.t - x["t"]))) for x in ev if x["event"] == "landed" and x["t"] > e["t"]][0]
+        assert err[k] < 3.0
+        assert np.degrees(fixation_errors(gt.T_world_cam()[k:k + 1], task_target[None]))[0] > 5.0
+    # Outside the glances the fixation is held as without them.
+    assert s["fixation_rms_deg"] < 1.0
