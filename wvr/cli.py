@@ -390,7 +390,8 @@ def cmd_sim_run(args) -> int:
         targets = [scenario.bench.target_corners().mean(axis=0)]
     region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
-                method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args), start=start)
+                method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args), start=start,
+                glances=args.glances)
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     with output_folder(args.out, kind="sim run") as out:    # INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)
@@ -700,7 +701,7 @@ def cmd_run(args) -> int:
             raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
         region = tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method,
-                recentre_per_s=_recentre(args), start=start_kind)
+                recentre_per_s=_recentre(args), start=start_kind, glances=args.glances)
     limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
     if task.uses_slam and start is None and start_kind == "target":
@@ -932,6 +933,13 @@ def _start_option(p: argparse.ArgumentParser, fixate_default: str) -> None:
                         f"origin at the first camera, z up, x ahead; fixate's default target is {fixate_default})")
 
 
+def _glances_option(p: argparse.ArgumentParser) -> None:
+    """--glances: fixate's brief looks away where SLAM's pose is weakest (runtime.apps.glances)."""
+    p.add_argument("--glances", action="store_true",
+                   help="with --task fixate: when SLAM's camera position grows uncertain along one direction "
+                        "(over 1 cm), the head looks briefly where that direction is best observed and comes back")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from runtime.apps.closed_loop import TASKS
     from runtime.twin.scenarios import SCENARIOS
@@ -1057,6 +1065,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="how far off (px) the simulated person clicks the target's corners for SLAM's start "
                           "(default 2.5; 0: the exact projection)")
     _start_option(run, "the clicked point")
+    _glances_option(run)
     run.add_argument("--out", required=True, help="output directory")
     _session_log_option(run)
     _twin_options(run, SCENARIOS)
@@ -1092,6 +1101,7 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--dwell", type=_positive, default=None,
                      help="seconds on each saccade target (default 2), or on each fixation explore chooses (default 1.5)")
     _start_option(rr, "the start target's clicked centre, else the image's centre")
+    _glances_option(rr)
     rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
                     help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")

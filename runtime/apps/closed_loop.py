@@ -55,6 +55,7 @@ from ..slam.config import DEFAULT_CONFIG, SlamConfig
 from ..slam.head_motion_start import point_at_pixel
 from ..slam.system import MonoSLAM
 from .explore import ExploreSettings, choose_fixation, viewing_cone_sr
+from .glances import GlanceSchedule, GlanceSettings, choose_glance, weakest_direction
 from .head_motion import HeadMotionPhase
 from ..vision2d.track import METHODS as TRACK_METHODS
 from ..vision2d.track import make_tracker
@@ -112,7 +113,9 @@ class Task:
     (the known target's clicked corners) or ``head-motion`` (no target: the head's own known
     motion fixes the scale, runtime.apps.head_motion, and the task begins after it; not with
     track; targets are then in the world frame that start makes, and fixate's default target is
-    the clicked point or the image's centre)."""
+    the clicked point or the image's centre). glances : fixate: leave the target briefly when
+    SLAM's pose grows uncertain along one direction, look where that direction is best
+    observed, come back (runtime.apps.glances)."""
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -121,6 +124,7 @@ class Task:
     method: str = "hyperplane"
     recentre_per_s: float = 0.0
     start: str = "target"
+    glances: bool = False
 
     def __post_init__(self):
         if self.kind not in TASKS:
@@ -146,6 +150,9 @@ class Task:
             raise ValueError(f"dwell_s = {self.dwell_s} must be positive")
         if not (math.isfinite(self.recentre_per_s) and self.recentre_per_s >= 0):
             raise ValueError(f"recentre_per_s = {self.recentre_per_s} must be >= 0 (1/s; 0 turns the outer loop off)")
+        if self.glances and self.kind != "fixate":
+            raise ValueError(f"glances leave a fixation target and come back to it: give them with task fixate, "
+                             f"not {self.kind}")
         if self.recentre_per_s > 0 and self.kind != "stabilise":
             raise ValueError("recentring is Path A's outer loop: give it with task stabilise only")
         object.__setattr__(self, "targets", t)
@@ -327,6 +334,8 @@ class ClosedLoop:
         self._explore_n = -1                # explore: how many fixations chosen, less one
         self._explore_t = -np.inf           # explore: when the last was chosen, s
         self._explore_landed_t: float | None = None
+        self.glances = GlanceSchedule(GlanceSettings()) if task.glances else None
+        self.glance_choice = None           # glances: the last one's ExploreChoice (score: nats along the weak direction)
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -471,6 +480,54 @@ class ClosedLoop:
             return t - self._explore_landed_t >= dwell
         return t - self._explore_t >= EXPLORE_GIVE_UP_S
 
+    def _glance(self, obs: Observation) -> None:
+        """Glances (runtime.apps.glances): send the head back when the glance is over; while
+        fixating, glance when SLAM's position is uncertain enough along its weakest direction and
+        a reachable view observes that direction."""
+        g, slam, ctl, t = self.glances, self.slam, self.ctl, obs.t
+        i_target = self._current % len(self.task.targets)
+        act = g.step(t)
+        if act == "return":
+            try:
+                ctl.saccade(self.task.targets[i_target])    # back at the controlled-motion limit
+            except GazeRefused as e:
+                self.log.refusals.append({"t": t, "target": i_target, "reason": str(e)})
+                g.landed(t)                                   # nothing to go back along
+                self.log.events.append({"t": t, "event": "glance-end", "index": g.count - 1})
+                return
+            self.log.events.append({"t": t, "event": "glance-return", "index": g.count - 1})
+            return
+        if act == "resume":
+            self._set_target(i_target, t)
+            self.log.events.append({"t": t, "event": "glance-end", "index": g.count - 1})
+            return
+        if slam is None or not slam.localised:
+            return
+        sigma, v = weakest_direction(slam.state.P[0:3, 0:3])
+        if not g.due(t, sigma):
+            return
+        q = np.asarray(obs.q, float)
+        T_world_mount = slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
+        # The dwell's frames each measure the view: their information adds, as one update whose
+        # pixel noise is the filter's over the frames' count.
+        frames = max(1, round(g.settings.dwell_s / self.dt))
+        ch = choose_glance(self.info.head, self.info.camera, slam.state, T_world_mount, q,
+                           slam.cfg.sigma_pixel / math.sqrt(frames), v, g.settings, map_points_world=slam.world_points())
+        self.glance_choice = ch
+        for k in np.argsort(-ch.score):
+            if ch.best < 0 or not ch.score[k] >= g.settings.min_gain_nats:
+                break
+            try:
+                ctl.saccade(ch.points_world[k])
+            except GazeRefused:
+                continue
+            g.begin(t, ch.points_world[k])
+            self.log.events.append({"t": t, "event": "glance", "index": g.count - 1,
+                                    "target": ch.points_world[k].tolist(), "sigma_m": sigma,
+                                    "direction": v.tolist(), "gain_nats": float(ch.score[k])})
+            return
+        g.not_worth(t)
+
     def _head_motion_start(self, obs: Observation) -> bool:
         """A period of the head-motion start; True at the period SLAM starts (the task begins)."""
         phase = self.head_start
@@ -539,6 +596,8 @@ class ClosedLoop:
                 self._explore(obs)
         elif self._kind == "explore" and i > 1 and self._explore_due(obs.t):
             self._explore(obs)
+        elif self.glances is not None and not self.external and i > 1 and self._task_t0 is not None:
+            self._glance(obs)
         if task.kind == "saccade" and not self.external and i > 1 and self._task_t0 is not None \
                 and obs.t - self._task_t0 >= (self._current + 1) * task.dwell_s:
             self._current += 1
@@ -578,6 +637,11 @@ class ClosedLoop:
         if cmd.landed:
             if self._kind == "explore":
                 self._explore_landed_t = obs.t
+            if self.glances is not None and self.glances.away:
+                back = self.glances.phase == "back"
+                self.glances.landed(obs.t)
+                if back:
+                    self.log.events.append({"t": obs.t, "event": "glance-end", "index": self.glances.count - 1})
             self.log.events.append({"t": obs.t, "event": "landed", "target": self._explore_n if self._kind == "explore"
                                     else "external" if self.external else self._current % len(task.targets)})
         q = np.asarray(obs.q, float)
@@ -588,6 +652,8 @@ class ClosedLoop:
             tgt = self._external_target if self._external_target is not None else np.full(3, np.nan)
         if self._kind == "explore" and self._explore_target is not None:
             tgt = self._explore_target
+        if self.glances is not None and self.glances.phase in ("out", "at"):
+            tgt = self.glances.point
         err = math.degrees(cmd.error_rad) if np.isfinite(cmd.error_rad) else float("nan")
         self.log.rows.append(LoopRow(
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,

@@ -103,6 +103,22 @@ def _landings(times, err_deg, events) -> list[dict]:
     return out
 
 
+def _glance_windows(times: np.ndarray, events: list[dict]) -> tuple[np.ndarray, dict]:
+    """The periods (n,) a fixation task spent away on glances (from each ``glance`` event to its
+    ``glance-end``, or the run's end), and the glances' figures: how many, the time between
+    their starts (median, s) and the time away in all (s)."""
+    away = np.zeros(len(times), bool)
+    starts = {e["index"]: e["t"] for e in events if e["event"] == "glance"}
+    ends = {e["index"]: e["t"] for e in events if e["event"] == "glance-end"}
+    for k, t0 in starts.items():
+        away |= (times >= t0) & (times <= ends.get(k, np.inf))
+    t_starts = np.sort(np.array(list(starts.values()), float))
+    gaps = np.diff(t_starts)
+    dt = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    return away, {"glances": len(starts), "glance_interval_s": float(np.median(gaps)) if len(gaps) else None,
+                  "glance_away_s": float(away.sum() * dt)}
+
+
 def start_map_scale(start, depth: np.ndarray) -> dict:
     """The scale of a start's map against the true depth image (H, W) m along the optic axis at
     its frame: each point's depth along the start camera's optic axis over the true depth at its
@@ -166,6 +182,11 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
         if "slam_start_s" in s:
             # A head-motion start: the task begins once SLAM has started.
             after = after & (times >= times[0] + s["slam_start_s"] + 1.0) & np.isfinite(err)
+        if getattr(task, "glances", False):
+            # The fixation's error is scored outside the glances (from leaving to landing back).
+            away, g = _glance_windows(times, log.events)
+            after = after & ~away
+            s.update(g)
         if task.kind == "fixate" and after.any():
             s.update(fixation_rms_deg=float(np.sqrt(np.mean(err[after] ** 2))), fixation_peak_deg=float(err[after].max()))
         if task.kind == "saccade":

@@ -83,11 +83,14 @@ class ExploreSettings:
 @dataclass(frozen=True)
 class ViewScores:
     """Scores of views (n of them): pose_info (n,) nats, n_visible (n,) mapped features predicted
-    in the image, empty (n,) the fraction of the image's cells with none."""
+    in the image, empty (n,) the fraction of the image's cells with none, along (n,) nats: the
+    information about the pose along one direction, ``0.5 ln(w' Sigma w / w' Sigma+ w)`` (zeros
+    when no direction was given)."""
 
     pose_info: np.ndarray
     n_visible: np.ndarray
     empty: np.ndarray
+    along: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -144,16 +147,21 @@ def _logdet(A: np.ndarray) -> float:
 
 
 def score_views(state: State, cam: CameraIntrinsics, T_cam_cands: np.ndarray, sigma_pixel: float,
-                margin_px: float = 12.0, measure_max: int = 60, cells: tuple[int, int] = (4, 3)) -> ViewScores:
+                margin_px: float = 12.0, measure_max: int = 60, cells: tuple[int, int] = (4, 3),
+                direction: np.ndarray | None = None) -> ViewScores:
     """The expected pose information of views of the map in ``state``.
 
     state : SLAM's state (camera block, then features). T_cam_cands : (n, 4, 4) each candidate
     camera pose relative to the present one (the head's motion). sigma_pixel : the measurement
-    noise, px per axis. Returns :class:`ViewScores`; the objective is the module docstring's.
+    noise, px per axis. direction : (6,) a direction in the pose's (position m, world rotation
+    rad) space whose information is scored too (``ViewScores.along``). Returns
+    :class:`ViewScores`; the objective is the module docstring's.
     """
     T_cam_cands = np.asarray(T_cam_cands, float).reshape(-1, 4, 4)
     if not sigma_pixel > 0:
         raise ValueError(f"sigma_pixel = {sigma_pixel} must be positive, px")
+    w = None if direction is None else np.asarray(direction, float).reshape(6)
+    out_along = []
     n_f = state.n_features
     ks = np.arange(n_f, dtype=np.intp)
     dims = FEATURE_DIMS[state.kinds] if n_f else np.zeros(0, np.intp)
@@ -171,6 +179,7 @@ def score_views(state: State, cam: CameraIntrinsics, T_cam_cands: np.ndarray, si
         out_empty.append(1.0 - len(occupied) / (cw * ch))
         if not len(sel):
             out_info.append(0.0)
+            out_along.append(0.0)
             continue
         # The covariance over the pose and the seen features, the pose carried through the head's motion.
         cols = np.concatenate([np.arange(POSE_DIM)] + [np.arange(state.starts[k], state.starts[k] + dims[k])
@@ -197,7 +206,11 @@ def score_views(state: State, cam: CameraIntrinsics, T_cam_cands: np.ndarray, si
         Sigma = G @ P[:POSE_DIM, :POSE_DIM] @ G.T
         Sigma_post = Sigma - A @ np.linalg.solve(S, A.T)
         out_info.append(max(0.0, 0.5 * (_logdet(Sigma) - _logdet(0.5 * (Sigma_post + Sigma_post.T)))))
-    return ViewScores(np.array(out_info, float), np.array(out_vis, int), np.array(out_empty, float))
+        if w is not None:
+            before, after = float(w @ Sigma @ w), float(w @ Sigma_post @ w)
+            out_along.append(0.5 * math.log(before / after) if before > 0 and after > 0 else 0.0)
+    along = np.array(out_along, float) if w is not None else np.zeros(len(out_info))
+    return ViewScores(np.array(out_info, float), np.array(out_vis, int), np.array(out_empty, float), along)
 
 
 def candidate_directions(head: HeadGeometry, T_world_mount: np.ndarray, settings: ExploreSettings) -> np.ndarray:
@@ -219,18 +232,27 @@ def candidate_directions(head: HeadGeometry, T_world_mount: np.ndarray, settings
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def choose_fixation(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_world_mount: np.ndarray,
-                    q_current: np.ndarray, sigma_pixel: float, settings: ExploreSettings = ExploreSettings(),
-                    map_points_world: np.ndarray | None = None) -> ExploreChoice:
-    """The next fixation: the candidate with the highest score (module docstring).
+@dataclass(frozen=True)
+class CandidateViews:
+    """The views the head can turn to: directions (n, 3) world unit, points (n, 3) m the
+    fixation points (at the map's median depth), reachable (n,), q (n, 3) rad (NaN where
+    unreachable), T_cam_cand (n, 4, 4) each view's camera pose relative to the present one, and
+    candidate (n,): reachable and at least ``min_shift_deg`` from the present optic axis."""
 
-    head, cam : the head and its camera. state : SLAM's state (its camera block is the present
-    camera pose). T_world_mount : (4, 4) the mount's pose. q_current : (3,) rad, the head's
-    commanded angles (the IK starts there, and the present optic axis is read there).
-    sigma_pixel : the filter's measurement noise, px. map_points_world : (N, 3) m, the map's
-    points (for the median depth; None: the features' own points are not read, the default
-    depth is used).
-    """
+    directions: np.ndarray
+    points: np.ndarray
+    reachable: np.ndarray
+    q: np.ndarray
+    T_cam_cand: np.ndarray
+    candidate: np.ndarray
+
+
+def candidate_views(head: HeadGeometry, T_world_mount: np.ndarray, q_current: np.ndarray,
+                    settings: ExploreSettings = ExploreSettings(),
+                    map_points_world: np.ndarray | None = None) -> CandidateViews:
+    """The settings' grid of directions, fixated at the map's median depth from the camera
+    (``map_points_world`` (N, 3) m; None: ``default_depth_m``), each solved by the fixation IK
+    from ``q_current`` (3,) rad on the mount's pose ``T_world_mount`` (4, 4)."""
     T_world_mount = np.asarray(T_world_mount, float)
     q_current = np.asarray(q_current, float)
     pose_now = forward_kinematics(head, q_current)
@@ -258,17 +280,34 @@ def choose_fixation(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_w
         Q[i] = res.q
         T_rel[i] = T_cam_world @ T_world_mount @ forward_kinematics(head, res.q).T_mount_cam
     far = np.degrees(np.arccos(np.clip(D @ axis_now, -1, 1))) >= settings.min_shift_deg
-    cand = reach & far
+    return CandidateViews(D, pts, reach, Q, T_rel, reach & far)
+
+
+def choose_fixation(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_world_mount: np.ndarray,
+                    q_current: np.ndarray, sigma_pixel: float, settings: ExploreSettings = ExploreSettings(),
+                    map_points_world: np.ndarray | None = None) -> ExploreChoice:
+    """The next fixation: the candidate with the highest score (module docstring).
+
+    head, cam : the head and its camera. state : SLAM's state (its camera block is the present
+    camera pose). T_world_mount : (4, 4) the mount's pose. q_current : (3,) rad, the head's
+    commanded angles (the IK starts there, and the present optic axis is read there).
+    sigma_pixel : the filter's measurement noise, px. map_points_world : (N, 3) m, the map's
+    points (for the median depth; None: the features' own points are not read, the default
+    depth is used).
+    """
+    c = candidate_views(head, T_world_mount, q_current, settings, map_points_world)
+    n, cand = len(c.directions), c.candidate
     info = np.zeros(n)
     empty = np.ones(n)
     nvis = np.zeros(n, int)
     if cand.any():
-        s = score_views(state, cam, T_rel[cand], sigma_pixel, settings.margin_px, settings.measure_max, settings.cells)
+        s = score_views(state, cam, c.T_cam_cand[cand], sigma_pixel, settings.margin_px, settings.measure_max,
+                        settings.cells)
         info[cand], empty[cand], nvis[cand] = s.pose_info, s.empty, s.n_visible
     score = info + settings.novelty_nats * empty * (nvis >= settings.min_visible)
     score = np.where(cand, score, -np.inf)
     best = int(np.argmax(score)) if cand.any() else -1
-    return ExploreChoice(D, pts, reach, Q, info, empty, nvis, score, best)
+    return ExploreChoice(c.directions, c.points, c.reachable, c.q, info, empty, nvis, score, best)
 
 
 def viewing_cone_sr(points_world: np.ndarray, centre_world: np.ndarray) -> float:

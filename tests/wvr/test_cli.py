@@ -96,3 +96,10 @@ def test_recentre_is_refused_outside_path_a_before_any_work(tmp_path):
     r = run("sim", "run", "--scenario", "workbench-static", "--task", "fixate", "--recentre", "2", "--out", str(out))
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--task stabilise" in r.stderr
     assert not out.exists()
+
+
+def test_glances_are_refused_on_a_task_without_a_fixation_target_before_any_work(tmp_path):
+    out = tmp_path / "run"
+    r = run("sim", "run", "--scenario", "workbench-static", "--task", "body", "--glances", "--out", str(out))
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "task fixate" in r.stderr and "glances" in r.stderr
+    assert not out.exists()
