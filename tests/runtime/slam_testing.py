@@ -96,6 +96,29 @@ def camera_covariance(q, sig_r, sig_theta, sig_v, sig_w, cam_dim: int = CAMERA_D
     return P
 
 
+def state_with_points(T_world_cam: np.ndarray, points_world: np.ndarray, sigma_xyz=(0.01, 0.01, 0.01),
+                      sigma_q: float = 0.01, sigma_point: float = 0.02):
+    """A SLAM State: a camera at ``T_world_cam`` (4, 4) with point features ``points_world``
+    (m, 3), independent Gaussian uncertainties: position ``sigma_xyz`` m per axis, quaternion
+    ``sigma_q`` per component, points ``sigma_point`` m, the velocities 0.1."""
+    from runtime.slam.layout import POINT
+    from runtime.slam.quaternion import quat_from_rotation
+    from runtime.slam.state import State
+
+    x_v = np.zeros(CAMERA_DIM)
+    x_v[0:3] = T_world_cam[:3, 3]
+    x_v[3:7] = quat_from_rotation(T_world_cam[:3, :3])
+    P_vv = np.eye(CAMERA_DIM) * 1e-2
+    P_vv[0:3, 0:3] = np.diag(np.square(np.broadcast_to(np.asarray(sigma_xyz, float), 3)))
+    P_vv[3:7, 3:7] = np.eye(4) * sigma_q**2
+    s = State.from_camera(x_v, P_vv)
+    m = len(points_world)
+    if m:
+        s.add_features([POINT] * m, np.asarray(points_world, float).ravel(), np.eye(3 * m) * sigma_point**2,
+                       np.zeros((3 * m, s.n)))
+    return s
+
+
 def random_covariance(rng, n: int, q, scale: float = 0.02) -> np.ndarray:
     """A random full (correlated) PSD covariance (n, n) with q's block tangent to the unit
     quaternion ``q`` (rows/columns 3:7), as a running filter has it."""

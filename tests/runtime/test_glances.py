@@ -13,28 +13,16 @@ from kinematics import forward_kinematics, reference_head
 from kinematics.camera import DEFAULT_CAMERA
 from runtime.apps.explore import ExploreSettings, candidate_directions, score_views
 from runtime.apps.glances import GlanceSchedule, GlanceSettings, choose_glance, weakest_direction
-from runtime.slam.layout import CAMERA_DIM, POINT
-from runtime.slam.quaternion import quat_from_rotation
-from runtime.slam.state import State
+
+import slam_testing as st
 
 CAM = DEFAULT_CAMERA
 HEAD = reference_head()
 
 
 def _state(T_world_cam: np.ndarray, points_world: np.ndarray, sigma_xyz=(0.01, 0.01, 0.01),
-           sigma_rot: float = 0.002, sigma_point: float = 0.005) -> State:
-    x_v = np.zeros(CAMERA_DIM)
-    x_v[0:3] = T_world_cam[:3, 3]
-    x_v[3:7] = quat_from_rotation(T_world_cam[:3, :3])
-    P_vv = np.eye(CAMERA_DIM) * 1e-2
-    P_vv[0:3, 0:3] = np.diag(np.square(sigma_xyz))
-    P_vv[3:7, 3:7] = np.eye(4) * sigma_rot**2
-    s = State.from_camera(x_v, P_vv)
-    m = len(points_world)
-    if m:
-        s.add_features([POINT] * m, np.asarray(points_world, float).ravel(), np.eye(3 * m) * sigma_point**2,
-                       np.zeros((3 * m, s.n)))
-    return s
+           sigma_rot: float = 0.002, sigma_point: float = 0.005):
+    return st.state_with_points(T_world_cam, points_world, sigma_xyz, sigma_rot, sigma_point)
 
 
 def _turn_y(deg: float) -> np.ndarray:
