@@ -436,6 +436,10 @@ class ClosedLoop:
         except GazeRefused as e:
             self.log.refusals.append({"t": t, "target": i, "reason": str(e)})
 
+    def _T_world_mount(self, q: np.ndarray) -> np.ndarray:
+        """(4, 4) the mount's pose from SLAM's camera pose and the head's angles ``q`` (3,) rad."""
+        return self.slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
+
     def _explore(self, obs: Observation) -> None:
         """Explore: choose the next fixation (runtime.apps.explore) from SLAM's map and the head's
         reach, and saccade to it; the best candidate the controller accepts (a refused one is
@@ -445,7 +449,7 @@ class ClosedLoop:
             return
         self._explore_t = t
         q = np.asarray(obs.q, float)
-        T_world_mount = slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
+        T_world_mount = self._T_world_mount(q)
         ch = choose_fixation(self.info.head, self.info.camera, slam.state, T_world_mount, q, slam.cfg.sigma_pixel,
                              self.explore_settings, map_points_world=slam.world_points())
         self.explore_choice = ch
@@ -507,7 +511,7 @@ class ClosedLoop:
         if not g.due(t, sigma):
             return
         q = np.asarray(obs.q, float)
-        T_world_mount = slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
+        T_world_mount = self._T_world_mount(q)
         # The dwell's frames each measure the view: their information adds, as one update whose
         # pixel noise is the filter's over the frames' count.
         frames = max(1, round(g.settings.dwell_s / self.dt))
