@@ -22,6 +22,8 @@ from kinematics.camera import CameraIntrinsics, default_camera, load_camera
 CLICK_ERROR_PX = 2.5
 
 
+#: turn-away: the wearer turns this far from the bench (its map then out of the head's reach).
+TURN_AWAY_DEG = 120.0
 #: stand-then-sit-down: the wearer stands still this long (time for a head-motion start) first.
 STAND_FIRST_S = 8.0
 
@@ -44,9 +46,11 @@ def wearer_for(scenario, seconds: float):
         m = motions.stand_then(body, motions.sit_down, STAND_FIRST_S, seconds)
     elif scenario.motion == "turn-round":
         m = motions.turn_round(body, seconds)
+    elif scenario.motion == "turn-away":
+        m = motions.turn_round(body, seconds, turns=1, angle_deg=TURN_AWAY_DEG, first_s=4.0)
     else:
         raise ValueError(f"scenario motion {scenario.motion!r} is not one of stand, walk, sit-down, "
-                         "stand-then-sit-down, turn-round")
+                         "stand-then-sit-down, turn-round, turn-away")
     G = scenario.T_world_body() @ body.segment_transforms(m)
     return Wearer(SEGMENTS, body.vertices, body.faces, body.face_segment, body.joints, m.t, G)
 
@@ -124,7 +128,8 @@ def run_on_twin(twin, scenario, task, out, seconds: float | None = None, seed: i
     settings = settings or ControllerSettings()
     s = run_closed_loop(safe_twin(twin, settings.motion_limit_rad_s), task, out, start_target=start, seconds=secs,
                         settings=settings, progress=progress, truth=twin, label=sc.name,
-                        task_info={"scenario": sc.name, "seed": seed}, on_period=on_period, session_log=session_log)
+                        task_info={"scenario": sc.name, "seed": seed}, on_period=on_period, session_log=session_log,
+                        wearer=twin.tell)
     from kinematics import save_head
 
     save_head(twin.head, Path(out) / "head.toml")

@@ -54,7 +54,7 @@ from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
 from ..slam.head_motion_start import point_at_pixel
 from ..slam.system import MonoSLAM
-from .explore import ExploreSettings, choose_fixation, viewing_cone_sr
+from .explore import ExploreSettings, choose_beyond_reach, choose_fixation, viewing_cone_sr
 from .glances import GlanceSchedule, GlanceSettings, choose_glance, weakest_direction
 from .head_motion import HeadMotionPhase
 from ..vision2d.track import METHODS as TRACK_METHODS
@@ -171,6 +171,11 @@ EXPLORE_DWELL_S = 1.5
 #: Explore: a saccade that has not landed this long after its choice is given up, and the next
 #: fixation chosen (SLAM lost on the way, or the wearer's motion keeps the error above landing).
 EXPLORE_GIVE_UP_S = 3.0
+
+#: Explore's dialogue with the wearer (issue 49, part 3): at most one request to turn this often,
+#: and the map's uncertainty noted again this long after it (the turn made, the new view mapped).
+ASK_EVERY_S = 10.0
+ASK_AFTER_S = 6.0
 
 #: How SLAM's map can start in the closed loop.
 STARTS = ("target", "head-motion")
@@ -334,6 +339,8 @@ class ClosedLoop:
         self._explore_n = -1                # explore: how many fixations chosen, less one
         self._explore_t = -np.inf           # explore: when the last was chosen, s
         self._explore_landed_t: float | None = None
+        self._ask_t = -np.inf               # explore: when the wearer was last asked to turn, s
+        self._ask_pending: float | None = None
         self.glances = GlanceSchedule(GlanceSettings()) if task.glances else None
         self.glance_choice = None           # glances: the last one's ExploreChoice (score: nats along the weak direction)
 
@@ -453,6 +460,7 @@ class ClosedLoop:
         ch = choose_fixation(self.info.head, self.info.camera, slam.state, T_world_mount, q, slam.cfg.sigma_pixel,
                              self.explore_settings, map_points_world=slam.world_points())
         self.explore_choice = ch
+        self._dialogue(t, ch, T_world_mount, q)
         for k in np.argsort(-ch.score):
             if not np.isfinite(ch.score[k]):
                 break
@@ -471,6 +479,41 @@ class ClosedLoop:
             return
         # None accepted: hold the present fixation and choose again after EXPLORE_GIVE_UP_S.
         self._explore_landed_t = None
+
+    def _map_uncertainty(self) -> dict:
+        """The map's uncertainty now (the dialogue's before and after): the camera position's
+        standard deviation along its weakest direction, the median of the map points' largest
+        standard deviations, m, the map's viewing cone, sr, and its size."""
+        slam = self.slam
+        n = slam.state.n_features
+        cov = slam.track.map.point_covariances(np.arange(n)) if n else np.zeros((0, 3, 3))
+        point_sigma = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0.0, None)) if n else np.zeros(0)
+        return {"pose_sigma_m": weakest_direction(slam.state.P[0:3, 0:3])[0],
+                "point_sigma_m": float(np.median(point_sigma)) if n else None,
+                "map_cone_sr": viewing_cone_sr(slam.world_points(), slam.T_world_cam()[:3, 3]), "map_features": n}
+
+    def _dialogue(self, t: float, ch, T_world_mount: np.ndarray, q: np.ndarray) -> None:
+        """Explore's dialogue with the wearer (issue 49, part 3): when the best view all round is
+        beyond the head's reach and worth ``ask_margin_nats`` more than the best within it, ask
+        the wearer to turn (the controller's prompt, which a twin's obeying wearer acts on), noting
+        the map's uncertainty then and ASK_AFTER_S later."""
+        if self._ask_pending is not None and t - self._ask_pending >= ASK_AFTER_S:
+            self.log.events.append({"t": t, "event": "after-turn", **self._map_uncertainty()})
+            self._ask_pending = None
+        if t - self._ask_t < ASK_EVERY_S:
+            return
+        slam, s = self.slam, self.explore_settings
+        within = float(np.max(ch.score)) if np.isfinite(ch.score).any() else 0.0
+        wish = choose_beyond_reach(self.info.head, self.info.camera, slam.state, T_world_mount, q,
+                                   slam.cfg.sigma_pixel, s, map_points_world=slam.world_points())
+        if wish is None or not wish.score > within + s.ask_margin_nats:
+            return
+        self.ctl.emit(wish.prompt, force=True)
+        self._ask_t = self._ask_pending = t
+        self.log.events.append({"t": t, "event": "ask-turn", "text": wish.prompt.text,
+                                "turn_deg": math.degrees(wish.prompt.turn_rad), "score": wish.score,
+                                "best_within_reach": within, "target": wish.point_world.tolist(),
+                                **self._map_uncertainty()})
 
     def _explore_due(self, t: float) -> bool:
         """Whether explore chooses again now: ``dwell_s`` after landing, or after giving up a
@@ -676,7 +719,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                     seconds: float | None = None, settings: ControllerSettings = ControllerSettings(),
                     progress: bool = True, truth: TruthSource | None = None, label: str = "",
                     task_info: dict | None = None, on_period: Callable[[Observation, JointCommand], None] | None = None,
-                    on_end: Callable[[], None] | None = None, session_log: bool = True) -> dict:
+                    on_end: Callable[[], None] | None = None, session_log: bool = True,
+                    wearer: Callable[[float, object], bool] | None = None) -> dict:
     """Run ``task`` on ``robot`` for ``seconds`` (None: until the robot's session ends or Ctrl-C);
     write joints.csv, prompts.csv, task.toml, trajectory.tum (SLAM), report.md and
     summary.json into ``out``; return the summary.
@@ -689,6 +733,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     while the plots are drawn). ``label`` : what the report calls the robot's setting
     (the scenario); ``task_info`` : extra keys for task.toml. ``session_log`` : also session.mcap
     (images, IMU, joints, SLAM's pose and map, target, prompts, events; runtime.session_log).
+    ``wearer(t, prompt)`` : who hears each wearer prompt as it is made (the twin's wearer, who
+    may obey it: ``Twin.tell``); an obeyed one is logged as a ``wearer-obeys`` event.
     """
     from .evaluate import evaluate, start_map_scale
     from .report import write_outputs
@@ -706,7 +752,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     bar = progress_bar(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
     ctrl_c = _CtrlC()
-    start_depth, n_said = None, 0
+    start_depth, n_said, n_prompts = None, 0, 0
     try:
         i = 0
         while True:
@@ -719,6 +765,11 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                 if e["event"] == "start" and progress:
                     progress_bar.write(f"t = {e['t']:.1f} s: {e['text']}")
             n_said = len(loop.log.events)
+            if wearer is not None:
+                for t_p, prompt in loop.prompts[n_prompts:]:
+                    if wearer(t_p, prompt):
+                        loop.log.events.append({"t": t_p, "event": "wearer-obeys", "text": prompt.text})
+            n_prompts = len(loop.prompts)
             if loop.start_result is not None and start_depth is None and hasattr(truth, "render_depth"):
                 # Scoring only, after the step: the true depth where the head-motion start was made.
                 start_depth = truth.render_depth()

@@ -39,6 +39,7 @@ from kinematics import HeadGeometry, forward_kinematics
 from kinematics.camera import CameraIntrinsics, in_image
 
 from ..gaze.estimate import UP, ik_point
+from ..gaze.prompts import Prompt, wearer_prompt
 from ..slam.layout import FEATURE_DIMS, POSE_DIM
 from ..slam.measurement import predict
 from ..slam.quaternion import quat_from_rotation, quat_multiply, quat_to_rotation, rotation_derivatives
@@ -54,7 +55,10 @@ class ExploreSettings:
     with no mapped feature in any cell, nats. min_visible : mapped features a view must keep for
     its novelty to count. measure_max : features in one predicted update, at most (SLAM's own).
     min_shift_deg : candidates nearer the present optic axis are left out. default_depth_m : the
-    fixation depth with no map in front."""
+    fixation depth with no map in front. around_deg : the azimuths (start, stop, step) of the
+    views all round the wearer that :func:`choose_beyond_reach` scores. ask_margin_nats : a view
+    beyond the head's reach must score this much more than the best within it for the wearer to
+    be asked to turn."""
 
     azimuth_deg: tuple[float, float, float] = (-80.0, 80.0, 20.0)
     elevation_deg: tuple[float, float, float] = (-40.0, 40.0, 20.0)
@@ -65,15 +69,18 @@ class ExploreSettings:
     measure_max: int = 60
     min_shift_deg: float = 10.0
     default_depth_m: float = 1.0
+    around_deg: tuple[float, float, float] = (-180.0, 160.0, 20.0)
+    ask_margin_nats: float = 0.25
 
     def __post_init__(self):
-        for name in ("azimuth_deg", "elevation_deg"):
+        for name in ("azimuth_deg", "elevation_deg", "around_deg"):
             a, b, s = getattr(self, name)
             if not (math.isfinite(a) and math.isfinite(b) and a <= b and s > 0):
                 raise ValueError(f"ExploreSettings.{name} = {(a, b, s)} must be (start, stop, step) with start <= stop "
                                  f"and step > 0, degrees")
-        if not (self.margin_px >= 0 and self.novelty_nats >= 0 and self.min_shift_deg >= 0):
-            raise ValueError("ExploreSettings: margin_px, novelty_nats and min_shift_deg must be >= 0")
+        if not (self.margin_px >= 0 and self.novelty_nats >= 0 and self.min_shift_deg >= 0
+                and self.ask_margin_nats >= 0):
+            raise ValueError("ExploreSettings: margin_px, novelty_nats, min_shift_deg and ask_margin_nats must be >= 0")
         if not (self.cells[0] >= 1 and self.cells[1] >= 1 and self.measure_max >= 1 and self.min_visible >= 0):
             raise ValueError("ExploreSettings: cells must be >= 1 each, measure_max >= 1, min_visible >= 0")
         if not self.default_depth_m > 0:
@@ -308,6 +315,50 @@ def choose_fixation(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_w
     score = np.where(cand, score, -np.inf)
     best = int(np.argmax(score)) if cand.any() else -1
     return ExploreChoice(c.directions, c.points, c.reachable, c.q, info, empty, nvis, score, best)
+
+
+@dataclass(frozen=True)
+class BeyondReach:
+    """The best view out of the head's reach now, were the wearer to turn as ``prompt`` asks:
+    its fixation point (3,) m, its score (nats, as explore's), and the prompt (a ``turn``)."""
+
+    point_world: np.ndarray
+    score: float
+    prompt: Prompt
+
+
+def choose_beyond_reach(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_world_mount: np.ndarray,
+                        q_current: np.ndarray, sigma_pixel: float, settings: ExploreSettings = ExploreSettings(),
+                        map_points_world: np.ndarray | None = None) -> BeyondReach | None:
+    """The best view all round the wearer (``around_deg`` azimuths, explore's elevations) that
+    the head cannot reach now but could after the smallest turn of the wearer on the spot
+    (:func:`runtime.gaze.prompts.wearer_prompt`): each scored as explore scores its candidates,
+    with the camera where the head would put it on the turned mount. None if no such view."""
+    around = ExploreSettings(azimuth_deg=settings.around_deg, elevation_deg=settings.elevation_deg,
+                             min_shift_deg=0.0, default_depth_m=settings.default_depth_m)
+    c = candidate_views(head, T_world_mount, q_current, around, map_points_world)
+    T_world_mount = np.asarray(T_world_mount, float)
+    T_cam_world = np.linalg.inv(T_world_mount @ forward_kinematics(head, np.asarray(q_current, float)).T_mount_cam)
+    pts, prompts, T_rel = [], [], []
+    for k in np.flatnonzero(~c.reachable):
+        pr = wearer_prompt(head, T_world_mount, c.points[k], q_current)
+        if pr.kind != "turn":
+            continue
+        cz, sz = math.cos(pr.turn_rad), math.sin(pr.turn_rad)
+        T_turned = T_world_mount.copy()
+        T_turned[:3, :3] = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]]) @ T_world_mount[:3, :3]
+        res = ik_point(head, c.points[k], T_turned, q_current)
+        if not res.reachable:
+            continue
+        pts.append(c.points[k])
+        prompts.append(pr)
+        T_rel.append(T_cam_world @ T_turned @ forward_kinematics(head, res.q).T_mount_cam)
+    if not pts:
+        return None
+    s = score_views(state, cam, np.array(T_rel), sigma_pixel, settings.margin_px, settings.measure_max, settings.cells)
+    score = s.pose_info + settings.novelty_nats * s.empty * (s.n_visible >= settings.min_visible)
+    b = int(np.argmax(score))
+    return BeyondReach(np.asarray(pts[b], float), float(score[b]), prompts[b])
 
 
 def viewing_cone_sr(points_world: np.ndarray, centre_world: np.ndarray) -> float:

@@ -4,7 +4,7 @@ recording's head does.
 The place (``Scenario.scene``) is a workbench, a kitchen counter or an office desk, each with
 its own known target (:mod:`runtime.twin.workbench`, :mod:`.kitchen`, :mod:`.office`); its
 textures and layout come from the scene seed. The body's motion is named (``stand``, ``walk``,
-``sit-down``, ``stand-then-sit-down``, ``turn-round``) and supplied by whoever builds the wearer (the placement motions, through
+``sit-down``, ``stand-then-sit-down``, ``turn-round``, ``turn-away``) and supplied by whoever builds the wearer (the placement motions, through
 ``wvr``); the scenario places the body in the world (``body_xy``, ``body_yaw``: the body frame
 faces -y rotated by the yaw) and says what the scripted head looks at in a recording (the
 closed loop replaces the script by a controller).
@@ -64,6 +64,7 @@ class Scenario:
     moving_card: bool = False     # a textured card moved about above the bench (2D tracking)
     sweep_scale: tuple[float, float] = (1.0, 1.0)   # the gaze sweeps' amplitudes (seeded variation)
     sweep_phase: float = 0.0      # rad, the second sweep component's phase (seeded variation)
+    obeys_prompts: bool = False   # the wearer turns when a prompt asks (Twin.tell)
 
     def __post_init__(self):
         if self.gaze not in GAZES:
@@ -227,6 +228,9 @@ SCENARIOS: dict[str, Scenario] = {
     # target on the bench is in view at the start only; the posters on all four sides and the
     # floor are what the map must grow over. The head rides the body in a recording.
     "turn-round-room": Scenario("turn-round-room", "turn-round", 30.0, (0.0, 0.05), 0.0, "still"),
+    # The same place; the wearer turns 120 deg away from the bench after 4 s and then stands,
+    # and obeys a prompt to turn (Twin.tell): the wearer in explore's dialogue (issue 49, part 3).
+    "turn-away-ask": Scenario("turn-away-ask", "turn-away", 24.0, (0.0, 0.05), 0.0, "still", obeys_prompts=True),
 }
 
 

@@ -74,6 +74,21 @@ def _egl_display_ready() -> None:
 GroundTruth = Truth
 
 
+#: A wearer who obeys prompts (Scenario.obeys_prompts) starts a turn this long after being asked,
+#: and turns at this rate (a person turning on the spot, unhurried).
+REACTION_S = 0.8
+TURN_RATE_RAD_S = math.radians(45.0)
+
+
+def _about_z(pivot_xy: np.ndarray, psi: float) -> np.ndarray:
+    """(4, 4) a turn by ``psi`` rad about the vertical through ``pivot_xy`` (2,) m."""
+    c, s = math.cos(psi), math.sin(psi)
+    W = np.eye(4)
+    W[:2, :2] = [[c, -s], [s, c]]
+    W[:2, 3] = pivot_xy - W[:2, :2] @ pivot_xy
+    return W
+
+
 class Twin:
     """Wearer + head + a place (workbench, kitchen counter, office desk) in MuJoCo.
 
@@ -191,6 +206,7 @@ class Twin:
         self.G_mount_seg = self.wearer.pose(self.ms, self.step_times)
         self.mount_quat_wxyz = Rotation.from_matrix(self.G_mount_seg[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
         self.k = 0
+        self._turns: list[tuple[float, float, float, np.ndarray]] = []   # (t0, duration, psi, pivot): Twin.tell
         self.cam_p = np.zeros((n_steps + 1, 3))
         self.cam_R = np.zeros((n_steps + 1, 3, 3))
         self._imu_pending = []
@@ -265,13 +281,22 @@ class Twin:
                 self.data.mocap_pos[mocap_id] = T[:3, 3]
                 self.data.mocap_quat[mocap_id] = Rotation.from_matrix(T[:3, :3]).as_quat()[[3, 0, 1, 2]]
             G = self.wearer.poses(t)
+            W = self._turned(t)
+            if W is not None:
+                G = W @ G
             segs = np.arange(len(self.wearer.segments))
             pos = G[:, :3, 3]
             quat = Rotation.from_matrix(G[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
         else:
             segs = np.array([self.ms])
-            pos = self.G_mount_seg[index][None, :3, 3]
-            quat = self.mount_quat_wxyz[index][None]
+            W = self._turned(self.step_times[index])
+            if W is None:
+                pos = self.G_mount_seg[index][None, :3, 3]
+                quat = self.mount_quat_wxyz[index][None]
+            else:
+                G = W @ self.G_mount_seg[index]
+                pos = G[None, :3, 3]
+                quat = Rotation.from_matrix(G[:3, :3]).as_quat()[[3, 0, 1, 2]][None]
         self.data.mocap_pos[self.mocap[segs]] = pos
         self.data.mocap_quat[self.mocap[segs]] = quat
 
@@ -388,7 +413,39 @@ class Twin:
                            T_world_mount=self.T_world_mount(self.t), command=self._command.copy())
 
     def T_world_mount(self, t: float) -> np.ndarray:
-        return self.wearer.pose(self.ms, t) @ self.T_rest_mount
+        T = self.wearer.pose(self.ms, t) @ self.T_rest_mount
+        W = self._turned(t)
+        return T if W is None else W @ T
+
+    # ------------------------------------------------------------------ the wearer told
+    def tell(self, t: float, prompt) -> bool:
+        """A wearer prompt (runtime.gaze.prompts.Prompt) said to the wearer at ``t`` s. In a
+        scenario whose wearer obeys (``Scenario.obeys_prompts``) a ``turn`` is made: it starts
+        REACTION_S later and turns the whole body about the vertical through the mount at
+        TURN_RATE_RAD_S (a smooth start and stop), on top of the scenario's own motion. A prompt
+        said while a turn is under way, or of another kind, is not obeyed. Returns whether it is."""
+        if not self.scenario.obeys_prompts or getattr(prompt, "kind", None) != "turn" or self.turning(t):
+            return False
+        psi = float(prompt.turn_rad)
+        if not (math.isfinite(psi) and psi != 0.0):
+            return False
+        pivot = self.T_world_mount(t)[:2, 3].copy()
+        self._turns.append((t + REACTION_S, max(abs(psi) / TURN_RATE_RAD_S, 0.5), psi, pivot))
+        return True
+
+    def turning(self, t: float) -> bool:
+        """Whether an obeyed turn is under way (or about to start) at ``t``."""
+        return bool(self._turns) and t < self._turns[-1][0] + self._turns[-1][1]
+
+    def _turned(self, t: float) -> np.ndarray | None:
+        """(4, 4) the obeyed turns' transform of the wearer at ``t`` (None: never asked)."""
+        if not self._turns:
+            return None
+        W = np.eye(4)
+        for t0, dur, psi, pivot in self._turns:
+            s = min(max((t - t0) / dur, 0.0), 1.0)
+            W = _about_z(pivot, psi * s * s * (3.0 - 2.0 * s)) @ W      # smoothstep: no jerk at either end
+        return W
 
     def scripted_command(self, t: float, q_current: np.ndarray) -> np.ndarray:
         """The recording's head command: fixate the scenario's look-at point (uses ground truth:

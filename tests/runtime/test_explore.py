@@ -168,3 +168,65 @@ def test_explore_task_needs_no_target_and_dwells_1_5_s_by_default():
     assert Task("saccade", np.eye(3), ).dwell_s == 2.0 and Task("explore", dwell_s=0.5).dwell_s == 0.5
     with pytest.raises(ValueError, match="dwell_s"):
         Task("explore", dwell_s=0.0)
+
+
+def test_a_view_beyond_reach_comes_with_the_turn_that_brings_it_within():
+    from runtime.apps.explore import choose_beyond_reach
+
+    settings = ExploreSettings()
+    T_wm, q0, _ = _mount_and_state(np.zeros((0, 3)))
+    c = forward_kinematics(HEAD, q0).p_mount_cam
+    D = candidate_directions(HEAD, T_wm, ExploreSettings(azimuth_deg=(-180.0, 160.0, 20.0),
+                                                         elevation_deg=(0.0, 0.0, 20.0)))
+    behind = _patch(c + 2.0 * D[0], n=5, half=0.2)        # azimuth -180 deg: straight behind
+    _, _, s = _mount_and_state(behind)
+    b = choose_beyond_reach(HEAD, CAM, s, T_wm, q0, 1.0, settings, map_points_world=behind)
+    assert b is not None and b.prompt.kind == "turn" and abs(b.prompt.turn_rad) > math.radians(60)
+    assert b.score > 1.0                                  # the turned view sees the features
+    # Within reach the same map gives nothing: the request is what would find it.
+    ch = choose_fixation(HEAD, CAM, s, T_wm, q0, 1.0, settings, map_points_world=behind)
+    assert np.max(ch.pose_info) == 0.0
+    # The point asked for is reachable from the turned mount, and not from this one.
+    from runtime.gaze.estimate import ik_point
+
+    cz, sz = math.cos(b.prompt.turn_rad), math.sin(b.prompt.turn_rad)
+    T_turned = T_wm.copy()
+    T_turned[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1.0]]) @ T_wm[:3, :3]
+    assert ik_point(HEAD, b.point_world, T_turned, q0).reachable and not ik_point(HEAD, b.point_world, T_wm, q0).reachable
+    # Features all within reach: nothing beyond it beats them (no turned view sees them).
+    ahead = _patch(c + 2.0 * D[9], n=4, half=0.2)         # azimuth 0
+    _, _, s2 = _mount_and_state(ahead)
+    b2 = choose_beyond_reach(HEAD, CAM, s2, T_wm, q0, 1.0, settings, map_points_world=ahead)
+    assert b2 is None or b2.score < 0.5
+
+
+def test_explore_asks_the_wearer_to_turn_back_to_the_map_and_the_twin_obeys(tmp_path):
+    """turn-away-ask: the wearer turns 120 deg away from the mapped bench at 4 s; explore finds
+    the best view beyond the head's reach, asks the wearer to turn, the twin's wearer obeys, and
+    the map's uncertainty is noted at the request and after it."""
+    import json
+
+    from runtime.apps.closed_loop import ASK_AFTER_S, Task
+    from wvr.assemble import make_twin, run_on_twin
+
+    twin = make_twin()
+    try:
+        s = run_on_twin(twin, "turn-away-ask", Task("explore"), tmp_path / "run", seconds=15, seed=1,
+                        progress=False, session_log=False)
+        turns = list(twin._turns)
+    finally:
+        twin.close()
+    ev = s["events"]
+    asks = [e for e in ev if e["event"] == "ask-turn"]
+    assert asks, "no request to turn"
+    a = asks[0]
+    assert a["score"] > a["best_within_reach"] + ExploreSettings().ask_margin_nats
+    assert a["turn_deg"] < 0                          # back towards the bench: the wearer turned left
+    obeyed = [e for e in ev if e["event"] == "wearer-obeys" and e["text"] == a["text"]]
+    assert obeyed and any(abs(math.degrees(psi) - a["turn_deg"]) < 1e-9 for _, _, psi, _ in turns)
+    after = [e for e in ev if e["event"] == "after-turn"]
+    assert after and after[0]["t"] - a["t"] >= ASK_AFTER_S - 1e-9
+    for k in ("pose_sigma_m", "point_sigma_m", "map_cone_sr"):
+        assert np.isfinite(a[k]) and np.isfinite(after[0][k])
+    assert after[0]["pose_sigma_m"] < a["pose_sigma_m"] and after[0]["point_sigma_m"] < a["point_sigma_m"]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["lost_frames"] == 0

@@ -142,6 +142,42 @@ def test_imu_reads_gravity_at_rest(twin):
     assert np.linalg.norm(w) < 0.02                               # barely turning
 
 
+def test_a_wearer_who_obeys_turns_as_asked_and_the_camera_and_gyro_see_it(twin):
+    """turn-away-ask's wearer (Scenario.obeys_prompts) told to turn left 60 deg: after its
+    reaction and the turn, the mount has turned 60 deg more about the vertical than the
+    scenario's own motion turns it, the gyro measured the turn, and the ground truth still
+    composes body, mount and head. A wearer who does not obey (workbench-static) is unmoved."""
+    import math
+
+    from runtime.gaze.prompts import Prompt
+    from runtime.twin.twin import REACTION_S, TURN_RATE_RAD_S
+
+    def yaw(T):
+        return math.atan2(T[1, 0], T[0, 0])
+
+    twin.reset("turn-away-ask", seed=0, seconds=3.5)
+    free = [yaw(twin.T_world_mount(t)) for t in (0.0, 3.0)]   # before any prompt: the scenario's own
+    obs = twin.reset("turn-away-ask", seed=0, seconds=3.5)
+    turn = Prompt("turn", turn_rad=math.radians(60.0), text="turn left about 60 deg")
+    assert twin.tell(obs.t, turn) and not twin.tell(obs.t, turn)   # one turn at a time
+    gyro = []
+    for _ in range(int(3.0 * 30)):
+        obs = twin.step(twin.filter.q)
+        gyro.append(obs.imu.rows()[:, 1:4])
+    assert REACTION_S + math.radians(60.0) / TURN_RATE_RAD_S < 3.0 and not twin.turning(obs.t)
+    turned = yaw(twin.T_world_mount(obs.t)) - free[1]
+    assert math.degrees(turned) == pytest.approx(60.0, abs=0.5)
+    gt = twin.ground_truth
+    T = twin.T_world_mount(gt.t) @ forward_kinematics(twin.head, gt.q).T_mount_cam
+    np.testing.assert_allclose(T, gt.T_world_cam, atol=1e-9)
+    # The gyro (in the camera frame) integrates to about the turn's angle in magnitude.
+    w = np.vstack(gyro)
+    assert math.degrees(np.linalg.norm(w.sum(axis=0)) / 200.0) == pytest.approx(60.0, abs=6.0)
+    obs = twin.reset("workbench-static", seed=0, seconds=1.0)
+    assert not twin.tell(obs.t, turn)
+    assert not twin.tell(obs.t, Prompt("step", step_m=0.5, text="step"))
+
+
 def test_same_scenario_and_seed_give_the_same_files(tmp_path):
     outs = []
     for k in range(2):
