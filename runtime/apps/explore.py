@@ -39,7 +39,7 @@ from kinematics import HeadGeometry, forward_kinematics
 from kinematics.camera import CameraIntrinsics, in_image
 
 from ..gaze.estimate import UP, ik_point
-from ..gaze.prompts import Prompt, wearer_prompt
+from ..gaze.prompts import Prompt, turned_mount, wearer_prompt
 from ..slam.layout import FEATURE_DIMS, POSE_DIM
 from ..slam.measurement import predict
 from ..slam.quaternion import quat_from_rotation, quat_multiply, quat_to_rotation, rotation_derivatives
@@ -344,9 +344,7 @@ def choose_beyond_reach(head: HeadGeometry, cam: CameraIntrinsics, state: State,
         pr = wearer_prompt(head, T_world_mount, c.points[k], q_current)
         if pr.kind != "turn":
             continue
-        cz, sz = math.cos(pr.turn_rad), math.sin(pr.turn_rad)
-        T_turned = T_world_mount.copy()
-        T_turned[:3, :3] = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]]) @ T_world_mount[:3, :3]
+        T_turned = turned_mount(T_world_mount, pr.turn_rad)
         res = ik_point(head, c.points[k], T_turned, q_current)
         if not res.reachable:
             continue

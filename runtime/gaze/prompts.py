@@ -40,6 +40,15 @@ def _reachable(head: HeadGeometry, T_world_mount: np.ndarray, p_world: np.ndarra
     return res.reachable
 
 
+def turned_mount(T_world_mount: np.ndarray, psi: float) -> np.ndarray:
+    """(4, 4) the mount after the wearer turns on the spot by ``psi`` rad (left positive) about
+    the vertical through the mount."""
+    c, s = math.cos(psi), math.sin(psi)
+    T = np.asarray(T_world_mount, float).copy()
+    T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+    return T
+
+
 def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_current=None,
                   turn_step_rad: float = math.radians(5.0), steps_m=(0.25, 0.5, 0.75, 1.0)) -> Prompt:
     """The smallest turn (then the smallest step) that makes ``p_world`` (3,) fixatable.
@@ -52,10 +61,7 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
         return Prompt("ok", text="the point is reachable; nothing to ask")
 
     def turned(psi):
-        c, s = math.cos(psi), math.sin(psi)
-        Tn = T.copy()
-        Tn[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
-        return Tn
+        return turned_mount(T, psi)
 
     # Coarse to fine, each step of ``turn_step_rad`` as the plain search would meet them: the
     # first band of COARSE steps whose far end is reachable (either way) is searched step by

@@ -189,9 +189,9 @@ def test_a_view_beyond_reach_comes_with_the_turn_that_brings_it_within():
     # The point asked for is reachable from the turned mount, and not from this one.
     from runtime.gaze.estimate import ik_point
 
-    cz, sz = math.cos(b.prompt.turn_rad), math.sin(b.prompt.turn_rad)
-    T_turned = T_wm.copy()
-    T_turned[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1.0]]) @ T_wm[:3, :3]
+    from runtime.gaze.prompts import turned_mount
+
+    T_turned = turned_mount(T_wm, b.prompt.turn_rad)
     assert ik_point(HEAD, b.point_world, T_turned, q0).reachable and not ik_point(HEAD, b.point_world, T_wm, q0).reachable
     # Features all within reach: nothing beyond it beats them (no turned view sees them).
     ahead = _patch(c + 2.0 * D[9], n=4, half=0.2)         # azimuth 0
