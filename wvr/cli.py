@@ -391,7 +391,7 @@ def cmd_sim_run(args) -> int:
     region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
                 method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args), start=start,
-                glances=args.glances)
+                glances=getattr(args, "glances", False))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     with output_folder(args.out, kind="sim run") as out:    # INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)

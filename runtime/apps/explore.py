@@ -39,7 +39,7 @@ from kinematics import HeadGeometry, forward_kinematics
 from kinematics.camera import CameraIntrinsics, in_image
 
 from ..gaze.estimate import UP, ik_point
-from ..gaze.prompts import Prompt, turned_mount, wearer_prompt
+from ..gaze.prompts import Prompt, turn_prompt, turned_mount
 from ..slam.layout import FEATURE_DIMS, POSE_DIM
 from ..slam.measurement import predict
 from ..slam.quaternion import quat_from_rotation, quat_multiply, quat_to_rotation, rotation_derivatives
@@ -330,33 +330,34 @@ class BeyondReach:
 def choose_beyond_reach(head: HeadGeometry, cam: CameraIntrinsics, state: State, T_world_mount: np.ndarray,
                         q_current: np.ndarray, sigma_pixel: float, settings: ExploreSettings = ExploreSettings(),
                         map_points_world: np.ndarray | None = None) -> BeyondReach | None:
-    """The best view all round the wearer (``around_deg`` azimuths, explore's elevations) that
-    the head cannot reach now but could after the smallest turn of the wearer on the spot
-    (:func:`runtime.gaze.prompts.wearer_prompt`): each scored as explore scores its candidates,
-    with the camera where the head would put it on the turned mount. None if no such view."""
+    """The best view all round the wearer (``around_deg`` azimuths from the mount's forward
+    axis, explore's elevations) that the head cannot reach now, scored as explore scores its candidates with
+    the wearer turned to face it (the camera where the head would put it on the turned mount),
+    and the request to make that turn. None if no such view. One fixation IK per direction: the
+    wearer prompts' smallest-turn search (up to 80 solves each) would stall the control step."""
     around = ExploreSettings(azimuth_deg=settings.around_deg, elevation_deg=settings.elevation_deg,
                              min_shift_deg=0.0, default_depth_m=settings.default_depth_m)
     c = candidate_views(head, T_world_mount, q_current, around, map_points_world)
+    # The directions are azimuth-major (candidate_directions): each azimuth's elevations in turn.
+    n_el = len(np.arange(settings.elevation_deg[0], settings.elevation_deg[1] + 1e-9, settings.elevation_deg[2]))
+    az = np.repeat(np.radians(np.arange(settings.around_deg[0], settings.around_deg[1] + 1e-9,
+                                        settings.around_deg[2])), n_el)
     T_world_mount = np.asarray(T_world_mount, float)
     T_cam_world = np.linalg.inv(T_world_mount @ forward_kinematics(head, np.asarray(q_current, float)).T_mount_cam)
-    pts, prompts, T_rel = [], [], []
+    ks, T_rel = [], []
     for k in np.flatnonzero(~c.reachable):
-        pr = wearer_prompt(head, T_world_mount, c.points[k], q_current)
-        if pr.kind != "turn":
-            continue
-        T_turned = turned_mount(T_world_mount, pr.turn_rad)
+        T_turned = turned_mount(T_world_mount, float(az[k]))
         res = ik_point(head, c.points[k], T_turned, q_current)
-        if not res.reachable:
-            continue
-        pts.append(c.points[k])
-        prompts.append(pr)
-        T_rel.append(T_cam_world @ T_turned @ forward_kinematics(head, res.q).T_mount_cam)
-    if not pts:
+        if res.reachable:
+            ks.append(k)
+            T_rel.append(T_cam_world @ T_turned @ forward_kinematics(head, res.q).T_mount_cam)
+    if not ks:
         return None
     s = score_views(state, cam, np.array(T_rel), sigma_pixel, settings.margin_px, settings.measure_max, settings.cells)
     score = s.pose_info + settings.novelty_nats * s.empty * (s.n_visible >= settings.min_visible)
     b = int(np.argmax(score))
-    return BeyondReach(np.asarray(pts[b], float), float(score[b]), prompts[b])
+    k = ks[b]
+    return BeyondReach(c.points[k].copy(), float(score[b]), turn_prompt(float(az[k])))
 
 
 def viewing_cone_sr(points_world: np.ndarray, centre_world: np.ndarray) -> float:

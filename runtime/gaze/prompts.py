@@ -49,6 +49,12 @@ def turned_mount(T_world_mount: np.ndarray, psi: float) -> np.ndarray:
     return T
 
 
+def turn_prompt(psi: float) -> Prompt:
+    """The request to turn on the spot by ``psi`` rad (left positive), said to 5 deg."""
+    way = "left" if psi > 0 else "right"
+    return Prompt("turn", turn_rad=psi, text=f"turn {way} about {round(math.degrees(abs(psi)) / 5) * 5:.0f} deg")
+
+
 def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_current=None,
                   turn_step_rad: float = math.radians(5.0), steps_m=(0.25, 0.5, 0.75, 1.0)) -> Prompt:
     """The smallest turn (then the smallest step) that makes ``p_world`` (3,) fixatable.
@@ -76,9 +82,7 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
             for sign in (1.0, -1.0):
                 psi = sign * i * turn_step_rad
                 if _reachable(head, turned(psi), p_world, q_current):
-                    way = "left" if psi > 0 else "right"
-                    return Prompt("turn", turn_rad=psi,
-                                  text=f"turn {way} about {round(math.degrees(abs(psi)) / 5) * 5:.0f} deg")
+                    return turn_prompt(psi)
     d = p_world[:2] - T[:2, 3]
     if np.linalg.norm(d) > 1e-9:
         d = d / np.linalg.norm(d)

@@ -211,7 +211,7 @@ def test_explore_asks_the_wearer_to_turn_back_to_the_map_and_the_twin_obeys(tmp_
 
     twin = make_twin()
     try:
-        s = run_on_twin(twin, "turn-away-ask", Task("explore"), tmp_path / "run", seconds=15, seed=1,
+        s = run_on_twin(twin, "turn-away-ask", Task("explore"), tmp_path / "run", seconds=20, seed=1,
                         progress=False, session_log=False)
         turns = list(twin._turns)
     finally:
