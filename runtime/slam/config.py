@@ -274,6 +274,8 @@ class MeasureSettings:
     guide_first: int = 12                # features searched first to guide the rest (guided.py); 0: off
     guide_area_px: float = 2_000.0       # guide when their 3-sigma ellipses average more, px^2 at 640 px width
     guide_floor_px: float = 1.0          # added in quadrature to a guided ellipse's axes (linearisation), px
+    rescue_area_px: float = 200_000.0    # fewer than guide_first ellipses under the search cap: the smallest up
+                                         # to this (px^2 at 640 px width) are searched to guide the rest
 
 
 @dataclass(frozen=True)

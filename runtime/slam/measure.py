@@ -38,6 +38,8 @@ class Measurement:
         self.cam, self.settings, self.sigma_pixel = cam, settings, float(sigma_pixel)
         self.seed, self.target = seed, target
         self.guided = 0             # features the last search guided (search)
+        self.over_cap = 0           # guides the last search took over the search cap (select)
+        self._rescue: np.ndarray | None = None   # those guides' indices into select's features
 
     def select(self, m: SlamMap) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
         """The features to measure this frame, their innovation covariances and noise (multiples
@@ -67,15 +69,42 @@ class Measurement:
         searchable = np.isfinite(area) & (area <= s.views.max_search_area_px)
         visible = int(len(sel))
         idx = np.flatnonzero(searchable)
+        rescue = self._rescue_guides(area, searchable)
+        if rescue is not None:
+            # Every ellipse goes on: the guides' matches narrow the rest's (search).
+            idx = np.union1d(idx, np.flatnonzero(np.isfinite(area)))
         if len(idx) > s.measure.measure_max:
             # The most reliable first (MapFeature.reliability), the most uncertain among equals,
             # spread over the image.
             feats = [m.features[k] for k in pred.ks[idx]]
             reliability = np.array([f.reliability for f in feats])
             priority = reliability + 1e-6 * np.log(np.maximum(det[idx], 1e-12))
-            idx = self._spread(pred.uv[idx], priority, [f.known for f in feats], s.measure.measure_max, idx)
+            known = np.array([f.known for f in feats], bool)
+            if rescue is not None:
+                known |= np.isin(idx, rescue)           # the guides are kept, as the target's points are
+            idx = self._spread(pred.uv[idx], priority, known, s.measure.measure_max, idx)
+        self._rescue = None if rescue is None else np.flatnonzero(np.isin(idx, rescue))
+        self.over_cap = 0 if rescue is None else int(np.count_nonzero(~searchable[idx[self._rescue]]))
         pred = pred.take(idx)
         return pred, S[idx], r_scale[idx], visible, Y[pred.ks]
+
+    def _rescue_guides(self, area: np.ndarray, searchable: np.ndarray) -> np.ndarray | None:
+        """When most of the predicted features' 3-sigma ellipses (``area``, px^2) and all but
+        fewer than ``guide_first`` are over the search cap (the camera's own motion uncertain: a
+        start's or re-localisation's unknown velocity at a low frame rate, a long focal length;
+        not a few young features' depths), the guides: those under it and the smallest others up
+        to ``rescue_area_px`` (at 640 px width), ``guide_first`` in all; None otherwise. Without
+        them no feature would be searched and the track would be lost for want of looking."""
+        g = self.settings.measure
+        n_ok = int(np.count_nonzero(searchable))
+        if g.guide_first <= 0 or n_ok >= g.guide_first or 2 * n_ok >= np.count_nonzero(np.isfinite(area)):
+            return None
+        cap = g.rescue_area_px * (self.cam.width / 640.0) ** 2
+        over = np.flatnonzero(np.isfinite(area) & ~searchable & (area <= cap))
+        if not len(over):
+            return None
+        take = over[np.argsort(area[over], kind="stable")][:g.guide_first - n_ok]
+        return np.union1d(np.flatnonzero(searchable), take)
 
     def _spread(self, uv: np.ndarray, priority: np.ndarray, known, n: int, idx: np.ndarray) -> np.ndarray:
         """``n`` of the candidates ``idx``: the target's points first, then round-robin over a
@@ -100,7 +129,8 @@ class Measurement:
         pred, S, r_scale, visible, Y = self.select(m)
         feats = [m.features[k] for k in pred.ks]
         warp = np.array([warped(s.warp, f) for f in feats], bool)
-        first = self._guides(m, pred, S, feats)
+        rescue = self._rescue
+        first = rescue if rescue is not None else self._guides(m, pred, S, feats)
         self.guided = 0
         if first is None:
             z, found = self._match(g, m, feats, warp, Y, pred.uv, S)
@@ -108,7 +138,10 @@ class Measurement:
         # Guided: the first features' matches narrow the rest's regions (guided.py); the update
         # is still made from every match against the prior.
         z = np.full((len(feats), 2), np.nan)
-        z[first], _ = self._match(g, m, [feats[i] for i in first], warp[first], Y[first], pred.uv[first], S[first])
+        cap = s.views.max_search_area_px if rescue is None else \
+            max(s.views.max_search_area_px, s.measure.rescue_area_px * (self.cam.width / 640.0) ** 2)
+        z[first], _ = self._match(g, m, [feats[i] for i in first], warp[first], Y[first], pred.uv[first], S[first],
+                                  cap)
         rest = np.setdiff1d(np.arange(len(feats)), first)
         guide = guided_regions(m.state, pred, S, first, z[first], s.ransac, s.measure.guide_floor_px)
         uv_r, S_r = (guide.uv, guide.S) if guide is not None else (pred.uv[rest], S[rest])
@@ -117,12 +150,12 @@ class Measurement:
         return pred, S, r_scale, visible, feats, z
 
     def _match(self, g, m: SlamMap, feats: list, warp: np.ndarray, Y: np.ndarray, uv: np.ndarray,
-               S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``feats``' matches in ``g`` searched in the ellipses (uv, S): z (m, 2) NaN where not
-        found, and found (m,)."""
+               S: np.ndarray, max_area: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``feats``' matches in ``g`` searched in the ellipses (uv, S) (none larger than
+        ``max_area``, px^2; default the search cap): z (m, 2) NaN where not found, and found (m,)."""
         s = self.settings
-        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S,
-                                     s.views.match_score, s.views.max_search_area_px)
+        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score,
+                                     s.views.max_search_area_px if max_area is None else max_area)
         z[~found] = np.nan
         return z, found
 
@@ -172,6 +205,7 @@ class Measurement:
             n = len(pred.ks)
         st.predicted = visible
         st.guided = self.guided
+        st.over_cap = self.over_cap
         edged = self.known_by_edges(g, feats, z, pred.uv) if s.startup.known_edges else np.zeros(n, bool)
         for f in feats:
             f.attempts += 1

@@ -51,6 +51,9 @@ class SlamRun:
     #: dropped; the prediction spans them (motion.py). The longest interval, s.
     frame_gaps: int = 0
     longest_interval_s: float = 0.0
+    #: Frames whose ellipses were mostly over the search cap (the camera's motion uncertain), the
+    #: smallest then searched to guide the rest (stats' per-frame ``over_cap``).
+    over_cap_frames: int = 0
     imu: dict = field(default_factory=dict)
     messages: tuple = ()
     #: The IMU's clock offset the filter ended with and its standard deviation, s (None without
@@ -385,6 +388,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         mean_ms_per_frame=1000 * mean([s.seconds for s in proc]),
         median_ms_per_frame=1000 * float(np.median([s.seconds for s in proc])) if proc else 0.0,
         imu_frames=sum(1 for s in proc if s.imu), frame_gaps=gaps, longest_interval_s=float(dt.max()) if len(dt) else 0.0,
+        over_cap_frames=sum(1 for s in proc if s.over_cap),
         imu=asdict(slam.imu.counts), messages=tuple(slam.messages),
         **_clock_offset(slam.state), scale=slam.scale_source, frames_before_start=i0, start_waits=waits,
         imu_scale={k: v for k, v in imu_scale.items() if k != "said"} if imu_scale else None)

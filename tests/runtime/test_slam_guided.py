@@ -69,3 +69,104 @@ def test_too_few_agreeing_matches_leave_the_rest_unguided():
     g = guided_regions(s, pred, S_prior, first, z[first], RANSAC, floor_px=1.5)
     g0 = guided_regions(s, pred, S_prior, first, z[first], RANSAC, floor_px=0.0)
     np.testing.assert_allclose(g.S - g0.S, np.broadcast_to(1.5 ** 2 * np.eye(2), g.S.shape))
+
+
+def _measurement(width=640, **measure):
+    from dataclasses import replace
+
+    from kinematics.camera import default_camera
+    from runtime.slam.config import MapSettings
+    from runtime.slam.measure import Measurement
+
+    cam = default_camera()
+    cam = replace(cam, width=width, cx=width / 2)
+    s = MapSettings()
+    return Measurement(cam, replace(s, measure=replace(s.measure, **measure)), 1.0, 0, None), s
+
+
+def test_when_most_ellipses_pass_the_cap_the_smallest_are_searched_to_guide_the_rest():
+    m, s = _measurement()
+    cap, n_first = s.views.max_search_area_px, s.measure.guide_first
+    rng = np.random.default_rng(3)
+    area = cap * rng.uniform(1.2, 4.0, 40)         # the camera's motion unknown: every ellipse over the cap
+    area[[5, 9]] = 0.5 * cap                       # two under it
+    area[7] = np.nan                               # one not predicted
+    ok = np.isfinite(area) & (area <= cap)
+    g = m._rescue_guides(area, ok)
+    assert len(g) == n_first and {5, 9} <= set(g.tolist())
+    over = np.setdiff1d(g, [5, 9])
+    finite_over = np.flatnonzero(np.isfinite(area) & ~ok)
+    assert np.all(area[over].max() <= np.delete(area, g)[np.isfinite(np.delete(area, g))].min())  # the smallest
+    assert set(over.tolist()) <= set(finite_over.tolist())
+    # Up to rescue_area_px (scaled with the image's width): none so small, no rescue.
+    area2 = area.copy()
+    area2[finite_over] = s.measure.rescue_area_px * 1.01
+    assert m._rescue_guides(area2, ok) is None
+    wide, _ = _measurement(width=1280)
+    assert len(wide._rescue_guides(area2, ok)) == n_first          # 4x the cap at twice the width
+
+
+def test_no_rescue_while_most_ellipses_are_searchable_or_enough_are():
+    m, s = _measurement()
+    cap, n_first = s.views.max_search_area_px, s.measure.guide_first
+    area = np.full(30, 2.0 * cap)
+    area[:16] = 0.1 * cap                          # most under the cap: a few young features' long ellipses
+    assert m._rescue_guides(area, area <= cap) is None
+    area = np.full(60, 2.0 * cap)
+    area[:n_first] = 0.1 * cap                     # enough to guide, though most are over
+    assert m._rescue_guides(area, area <= cap) is None
+    off, _ = _measurement(guide_first=0)
+    area = np.full(30, 2.0 * cap)
+    assert off._rescue_guides(area, area <= cap) is None
+    assert len(m._rescue_guides(area, area <= cap)) == n_first
+
+
+def _plane_view(cam, tex, tx: float, depth: float = 2.0, px_per_m: float = 400.0) -> np.ndarray:
+    """(H, W) float32: the textured plane z = ``depth`` m seen by a camera looking along +z from
+    (``tx``, 0, 0) m (the texture's centre at the world's origin)."""
+    import cv2
+
+    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float32), np.arange(cam.height, dtype=np.float32))
+    c = tex.shape[0] / 2
+    mx = ((u - cam.cx) / cam.fx * depth + tx) * px_per_m + c
+    my = (v - cam.cy) / cam.fy * depth * px_per_m + c
+    return cv2.remap(tex, mx, my, cv2.INTER_LINEAR)
+
+
+def test_a_frame_whose_ellipses_all_pass_the_cap_is_still_searched_and_matched():
+    """The camera moved 0.15 m (about 39 px) while the filter, its velocity unknown, allows 0.2 m
+    sd: every ellipse is over the search cap. The rescue's guides are found and the rest are
+    searched in their guided regions; with the rescue off nothing is searched."""
+    from dataclasses import replace
+
+    from kinematics.camera import default_camera
+    from runtime.slam.appearance.patch import extract_template
+    from runtime.slam.config import MapSettings
+    from runtime.slam.map_feature import MapFeature
+    from runtime.slam.measure import Measurement
+    from runtime.slam.views import SlamMap
+    from slam_testing import state_with_points, texture
+
+    cam, depth, tx = default_camera(), 2.0, 0.15
+    tex = texture(seed=4, size=1536, blur=2.0)
+    g0, g1 = _plane_view(cam, tex, 0.0), _plane_view(cam, tex, tx)
+    uv0 = np.stack(np.meshgrid(np.linspace(110, 530, 6), np.linspace(90, 390, 5)), -1).reshape(-1, 2)
+    X = np.column_stack([(uv0[:, 0] - cam.cx) / cam.fx * depth, (uv0[:, 1] - cam.cy) / cam.fy * depth,
+                         np.full(len(uv0), depth)])
+    truth = uv0 - [tx * cam.fx / depth, 0.0]
+    for rescue_px, expect_found in ((MapSettings().measure.rescue_area_px, True), (0.0, False)):
+        state = state_with_points(np.eye(4), X, sigma_xyz=0.2, sigma_q=1e-4, sigma_point=1e-3)
+        feats = [MapFeature(i, extract_template(g0, uv, 15), 0, np.zeros(3), last_seen=0) for i, uv in enumerate(uv0)]
+        s = MapSettings()
+        ms = Measurement(cam, replace(s, measure=replace(s.measure, rescue_area_px=rescue_px)), 1.0, 0, None)
+        pred, S, _, visible, _, z = ms.search(g1, SlamMap(state, feats))
+        area = 9 * np.pi * np.sqrt(np.linalg.det(S)) if len(S) else np.zeros(0)
+        assert visible == len(uv0)
+        if not expect_found:
+            assert len(pred.ks) == 0 and ms.over_cap == 0
+            continue
+        assert ms.over_cap == s.measure.guide_first and ms.guided == len(uv0) - s.measure.guide_first
+        assert np.all(area > s.views.max_search_area_px)           # every prior ellipse over the cap
+        found = np.isfinite(z).all(axis=1)
+        assert found.sum() >= 27
+        np.testing.assert_allclose(z[found], truth[pred.ks[found]], atol=0.5)
