@@ -157,7 +157,9 @@ class RobotInfo:
     name : for logs and reports. imu_noise : its IMU's noise (:class:`ImuNoise`), or None for
     the SLAM's defaults (a calibrated MEMS IMU's raw rates and specific force).
     imu_clock_offset_s : the IMU's stamps' measured lag behind the camera's, s, where SLAM
-    starts learning it.
+    starts learning it. clock_waits : the robot's clock stands still while the loop works (a
+    simulation): work beside the loop is then collected at a fixed loop time, waited for if need
+    be, so a run does not depend on the threads' timing (runtime.background).
     """
 
     head: HeadGeometry
@@ -167,6 +169,7 @@ class RobotInfo:
     name: str = "robot"
     imu_noise: ImuNoise | None = None
     imu_clock_offset_s: float = 0.0
+    clock_waits: bool = False
 
     @property
     def lower(self) -> np.ndarray:

@@ -49,6 +49,7 @@ from ..gaze import ControllerSettings, GazeController, GazeRefused
 from ..gaze.modes import Stabilise
 from .recentre import Recentring
 from ..session_log import SESSION_FILE, LoopRecorder
+from ..background import DelayedResult
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
 from ..slam.config import DEFAULT_CONFIG, SlamConfig
@@ -176,6 +177,9 @@ EXPLORE_GIVE_UP_S = 3.0
 #: and the map's uncertainty noted again this long after it (the turn made, the new view mapped).
 ASK_EVERY_S = 10.0
 ASK_AFTER_S = 6.0
+#: The views beyond reach are searched beside the loop (about a second of CPU) on a snapshot
+#: of the map; the answer is acted on this long after the snapshot.
+ASK_SEARCH_DELAY_S = 1.0
 
 #: How SLAM's map can start in the closed loop.
 STARTS = ("target", "head-motion")
@@ -341,6 +345,7 @@ class ClosedLoop:
         self._explore_landed_t: float | None = None
         self._ask_t = -np.inf               # explore: when the wearer was last asked to turn, s
         self._ask_pending: float | None = None
+        self._beyond = DelayedResult("explore-beyond-reach", ASK_SEARCH_DELAY_S, info.clock_waits)
         self.glances = GlanceSchedule(GlanceSettings()) if task.glances else None
         self.glance_choice = None           # glances: the last one's ExploreChoice (score: nats along the weak direction)
 
@@ -493,20 +498,33 @@ class ClosedLoop:
                 "map_cone_sr": viewing_cone_sr(slam.world_points(), slam.T_world_cam()[:3, 3]), "map_features": n}
 
     def _dialogue(self, t: float, ch, T_world_mount: np.ndarray, q: np.ndarray) -> None:
-        """Explore's dialogue with the wearer (issue 49, part 3): when the best view all round is
-        beyond the head's reach and worth ``ask_margin_nats`` more than the best within it, ask
-        the wearer to turn (the controller's prompt, which a twin's obeying wearer acts on), noting
-        the map's uncertainty then and ASK_AFTER_S later."""
+        """Explore's dialogue with the wearer (issue 49, part 3), at each explore choice: note the
+        map's uncertainty ASK_AFTER_S after a request, and, at most every ASK_EVERY_S, start the
+        search of the views beyond the head's reach on a snapshot of the map (beside the loop;
+        :meth:`_ask` acts on it)."""
         if self._ask_pending is not None and t - self._ask_pending >= ASK_AFTER_S:
             self.log.events.append({"t": t, "event": "after-turn", **self._map_uncertainty()})
             self._ask_pending = None
-        if t - self._ask_t < ASK_EVERY_S:
+        if t - self._ask_t < ASK_EVERY_S or self._beyond.busy:
             return
         slam, s = self.slam, self.explore_settings
         within = float(np.max(ch.score)) if np.isfinite(ch.score).any() else 0.0
-        wish = choose_beyond_reach(self.info.head, self.info.camera, slam.state, T_world_mount, q,
-                                   slam.cfg.sigma_pixel, s, map_points_world=slam.world_points())
-        if wish is None or not wish.score > within + s.ask_margin_nats:
+        self._beyond.submit(t, choose_beyond_reach, self.info.head, self.info.camera, slam.state.copy(),
+                            T_world_mount.copy(), q.copy(), slam.cfg.sigma_pixel, s,
+                            map_points_world=slam.world_points().copy(), context=within)
+
+    def _ask(self, t: float) -> None:
+        """When the best view all round (searched by :meth:`_dialogue`) is beyond the head's reach
+        and worth ``ask_margin_nats`` more than the best within it then, ask the wearer to turn
+        (the controller's prompt, which a twin's obeying wearer acts on), noting the map's
+        uncertainty. Not asked if the loop no longer explores."""
+        r = self._beyond.collect(t)
+        if r is None:
+            return
+        wish, within = r
+        if self._kind != "explore":
+            return                        # an operator has taken the loop elsewhere meanwhile
+        if wish is None or not wish.score > within + self.explore_settings.ask_margin_nats:
             return
         self.ctl.emit(wish.prompt, force=True)
         self._ask_t = self._ask_pending = t
@@ -643,6 +661,8 @@ class ClosedLoop:
                 self._explore(obs)
         elif self._kind == "explore" and i > 1 and self._explore_due(obs.t):
             self._explore(obs)
+        if self._beyond.busy:
+            self._ask(obs.t)
         elif self.glances is not None and not self.external and i > 1 and self._task_t0 is not None:
             self._glance(obs)
         if task.kind == "saccade" and not self.external and i > 1 and self._task_t0 is not None \

@@ -10,29 +10,10 @@ it was found at; nothing the filter computes depends on the check's outcome.
 
 from __future__ import annotations
 
-import os
-import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
+from ..background import worker
 from .state import State, check_covariance
-
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _lowest_priority() -> None:
-    """The worker at the lowest CPU priority (Linux: a thread's own nice value): on one core it
-    takes the time the tracker leaves (waiting for the next image), not the tracker's."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-    except (AttributeError, OSError):
-        pass
-
-
-def _pool() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-psd", initializer=_lowest_priority)
-    return _POOL
 
 
 class CovarianceWatch:
@@ -47,7 +28,7 @@ class CovarianceWatch:
         the factorisation of a copy; the previous one is collected first (it had frames to run)."""
         state.P = check_covariance(state.P, where, psd_rel_tol, False, state.describe)
         self.wait()
-        self._pending = _pool().submit(check_covariance, state.P.copy(), where, psd_rel_tol, True, state.describe)
+        self._pending = worker("slam-psd").submit(check_covariance, state.P.copy(), where, psd_rel_tol, True, state.describe)
 
     def raise_if_failed(self) -> None:
         """Raise the check's SlamNumericalError if a finished one failed."""

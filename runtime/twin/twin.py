@@ -136,7 +136,7 @@ class Twin:
     @property
     def info(self) -> RobotInfo:
         return RobotInfo(head=self.head, camera=self.camera, frame_rate=self.frame_rate,
-                         speed_limit=self.head.max_speed, name="twin")
+                         speed_limit=self.head.max_speed, name="twin", clock_waits=True)
 
     def configure(self, scenario: str | Scenario, seed: int = 0, seconds: float | None = None,
                   scene_seed: int | None = None) -> "Twin":
