@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow
 def test_a_still_wearer_gets_a_metric_map_from_the_heads_motion(tmp_path):
     out = tmp_path / "run"
     code = main(["sim", "run", "--task", "fixate", "--scenario", "office-static", "--seed", "1", "--start",
-                 "head-motion", "--seconds", "9", "--no-session-log", "--out", str(out)])
+                 "head-motion", "--seconds", "7.5", "--no-session-log", "--out", str(out)])
     assert code == 0
     est, gt = read_trajectory(out / "trajectory.tum"), read_trajectory(out / "groundtruth.txt")
     # SLAM gave no pose before the motion was made (wait for stillness, about 5 s of motion) ...
@@ -57,7 +57,7 @@ def test_a_task_that_only_observes_slam_says_it_wrote_its_trajectory(tmp_path, c
 def test_path_b_after_a_head_motion_start_holds_the_head_where_the_motion_ended(tmp_path):
     out = tmp_path / "hb"
     assert main(["sim", "run", "--task", "body", "--scenario", "office-static", "--seed", "1", "--start",
-                 "head-motion", "--seconds", "9", "--no-session-log", "--out", str(out)]) == 0
+                 "head-motion", "--seconds", "7.5", "--no-session-log", "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert 3.0 < s["slam_start_s"] < 8.0 and abs(s["start_map_scale_error"]) < 0.05 and s["ate_rmse_m"] < 0.02
     with open(out / "joints.csv") as fh:

@@ -124,7 +124,7 @@ def pose_nees(view: str, trials: int, seed: int, sigma_px: float = 0.5, nearest:
 
 @pytest.mark.parametrize("view", ["near oblique", "far oblique"])
 def test_pose_covariance_is_honest(view):
-    nees = pose_nees(view, 200, 3)
+    nees = pose_nees(view, 100, 3)
     lo, hi = st.chi2_band(6, len(nees))
     print(f"\n{view}: pose NEES {nees.mean():.2f}, 95% band [{lo:.2f}, {hi:.2f}]")
     assert lo < nees.mean() < hi
@@ -137,7 +137,7 @@ def test_pose_covariance_is_honest(view):
                    "3 degrees from frontal, even scoring the hypothesis nearest the truth): the issue's 'start locks "
                    "that error in with a small covariance' case")
 def test_pose_covariance_is_honest_for_a_far_frontal_target():
-    nees = pose_nees("far frontal", 200, 4, nearest=True)
+    nees = pose_nees("far frontal", 100, 4, nearest=True)
     lo, hi = st.chi2_band(6, len(nees))
     print(f"\nfar frontal: pose NEES {nees.mean():.2f} (nearest hypothesis), 95% band [{lo:.2f}, {hi:.2f}]")
     assert lo < nees.mean() < hi
