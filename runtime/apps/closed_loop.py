@@ -456,7 +456,7 @@ class ClosedLoop:
         """Explore: choose the next fixation (runtime.apps.explore) from SLAM's map and the head's
         reach, and saccade to it; the best candidate the controller accepts (a refused one is
         skipped). Nothing is chosen while SLAM is lost."""
-        slam, ctl, t = self.slam, self.ctl, obs.t
+        slam, t = self.slam, obs.t
         if slam is None or not slam.localised:
             return
         self._explore_t = t
@@ -466,24 +466,32 @@ class ClosedLoop:
                              self.explore_settings, map_points_world=slam.world_points())
         self.explore_choice = ch
         self._dialogue(t, ch, T_world_mount, q)
+        self._explore_landed_t = None
+        k = self._saccade_to_best(t, ch, -np.inf, "explore-skip")
+        if k is None:
+            return                  # none accepted: hold the present fixation, choose again after EXPLORE_GIVE_UP_S
+        self._explore_n += 1
+        self._explore_target = ch.points_world[k].copy()
+        self.log.events.append({"t": t, "event": "explore", "target": self._explore_target.tolist(),
+                                "score": float(ch.score[k]), "pose_info": float(ch.pose_info[k]),
+                                "visible": int(ch.n_visible[k]), "index": self._explore_n})
+
+    def _saccade_to_best(self, t: float, ch, floor: float, skip_event: str | None) -> int | None:
+        """Saccade to the best of ``ch``'s candidates (an ExploreChoice) that scores at least
+        ``floor`` and that the controller accepts, best first; each refused one is logged as a
+        ``skip_event`` event (None: not logged). Its index, or None if none."""
         for k in np.argsort(-ch.score):
-            if not np.isfinite(ch.score[k]):
+            if not (np.isfinite(ch.score[k]) and ch.score[k] >= floor):
                 break
             try:
-                ctl.saccade(ch.points_world[k])
+                self.ctl.saccade(ch.points_world[k])
             except GazeRefused as e:
-                self.log.events.append({"t": t, "event": "explore-skip", "target": ch.points_world[k].tolist(),
-                                        "reason": str(e)})
+                if skip_event is not None:
+                    self.log.events.append({"t": t, "event": skip_event, "target": ch.points_world[k].tolist(),
+                                            "reason": str(e)})
                 continue
-            self._explore_n += 1
-            self._explore_target = ch.points_world[k].copy()
-            self._explore_landed_t = None
-            self.log.events.append({"t": t, "event": "explore", "target": self._explore_target.tolist(),
-                                    "score": float(ch.score[k]), "pose_info": float(ch.pose_info[k]),
-                                    "visible": int(ch.n_visible[k]), "index": self._explore_n})
-            return
-        # None accepted: hold the present fixation and choose again after EXPLORE_GIVE_UP_S.
-        self._explore_landed_t = None
+            return int(k)
+        return None
 
     def _map_uncertainty(self) -> dict:
         """The map's uncertainty now (the dialogue's before and after): the camera position's
@@ -579,19 +587,14 @@ class ClosedLoop:
         ch = choose_glance(self.info.head, self.info.camera, slam.state, T_world_mount, q,
                            slam.cfg.sigma_pixel / math.sqrt(frames), v, g.settings, map_points_world=slam.world_points())
         self.glance_choice = ch
-        for k in np.argsort(-ch.score):
-            if ch.best < 0 or not ch.score[k] >= g.settings.min_gain_nats:
-                break
-            try:
-                ctl.saccade(ch.points_world[k])
-            except GazeRefused:
-                continue
-            g.begin(t, ch.points_world[k])
-            self.log.events.append({"t": t, "event": "glance", "index": g.count - 1,
-                                    "target": ch.points_world[k].tolist(), "sigma_m": sigma,
-                                    "direction": v.tolist(), "gain_nats": float(ch.score[k])})
+        k = None if ch.best < 0 else self._saccade_to_best(t, ch, g.settings.min_gain_nats, None)
+        if k is None:
+            g.not_worth(t)
             return
-        g.not_worth(t)
+        g.begin(t, ch.points_world[k])
+        self.log.events.append({"t": t, "event": "glance", "index": g.count - 1,
+                                "target": ch.points_world[k].tolist(), "sigma_m": sigma,
+                                "direction": v.tolist(), "gain_nats": float(ch.score[k])})
 
     def _head_motion_start(self, obs: Observation) -> bool:
         """A period of the head-motion start; True at the period SLAM starts (the task begins)."""
