@@ -80,19 +80,19 @@ def slam_result(seq, tmp_path_factory):
 def test_kinematics_show_mjcf_ik_picture(tmp_path, capsys):
     import json
 
-    r = wvr("kinematics", "show", "reference", "--json", "--directions", "100")
+    r = in_process(capsys, "kinematics", "show", "reference", "--json", "--directions", "100")
     assert r.returncode == 0 and isinstance(json.loads(r.stdout), dict), r.stderr
-    r = wvr("kinematics", "mjcf", "reference")
+    r = in_process(capsys, "kinematics", "mjcf", "reference")
     assert r.returncode == 0 and r.stdout.lstrip().startswith("<mujoco")
     # Negative numbers as the README writes them, with and without '='.
-    r = wvr("kinematics", "ik", "reference", "--target", "1,0.2,0", "--current", "-10,0,0")
+    r = in_process(capsys, "kinematics", "ik", "reference", "--target", "1,0.2,0", "--current", "-10,0,0")
     assert r.returncode == 0 and "q_deg" in r.stdout, r.stderr
-    r = wvr("kinematics", "ik", "reference", "--point", "--target", "-1.35,-0.6,0.85")
+    r = in_process(capsys, "kinematics", "ik", "reference", "--point", "--target", "-1.35,-0.6,0.85")
     assert r.returncode == 1 and r.stdout.startswith("unreachable"), r.stderr
     # Far points: the joint that blocks, not "too close".
-    r = wvr("kinematics", "ik", "reference", "--point", "--target", "0,1e9,0")
+    r = in_process(capsys, "kinematics", "ik", "reference", "--point", "--target", "0,1e9,0")
     assert r.returncode == 1 and "pan would need" in r.stdout and "too close" not in r.stdout
-    r = wvr("kinematics", "ik", "reference", "--point", "--target", "1e9,0,0")
+    r = in_process(capsys, "kinematics", "ik", "reference", "--point", "--target", "1e9,0,0")
     assert r.returncode == 0 and "q_deg" in r.stdout
     ik = ("kinematics", "ik", "reference")
     one_line_error(in_process(capsys, *ik, "--target", "1,0,0", "--current", "10,nan,0"), "finite")
@@ -145,10 +145,10 @@ def _tiny_sweep(tmp_path, name="sweep.toml", **sweep):
 
 
 def test_design_optimise_evaluate_template(tmp_path, capsys):
-    r = wvr("design", "sweep-template")
+    r = in_process(capsys, "design", "sweep-template")
     assert r.returncode == 0 and "[sweep]" in r.stdout
     sweep = _tiny_sweep(tmp_path)
-    r = wvr("design", "evaluate", "reference", "--sweep", sweep)
+    r = in_process(capsys, "design", "evaluate", "reference", "--sweep", sweep)
     assert r.returncode == 0 and "max_torque_nm" in r.stdout
     out = tmp_path / "out"
     r = wvr("design", "optimise", "--sweep", sweep, "--out", out)
