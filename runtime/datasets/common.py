@@ -24,6 +24,8 @@ from kinematics.camera import save_camera
 from kinematics.outdir import output_folder
 from runtime.sequence import DEPTH_SCALE, Sequence, SequenceError
 
+from .depth import read_depth
+
 NS_PER_S = 10**9
 
 #: A rotation read from a text file (printed to 7-12 digits) is re-orthonormalised if R^T R is
@@ -212,8 +214,6 @@ class DatasetSequence(Sequence):
         """Depth image (H, W) float32 of frame ``index``, metres along the optic axis (NaN where none),
         or None if no depth image is within depth_max_dt_s of the frame's time; a depth PNG that
         is 8-bit or of another size than camera.toml's raises SequenceError naming the file."""
-        from .tum import read_depth
-
         if self.depth_paths is None:
             return None
         t = self.timestamps[index]
