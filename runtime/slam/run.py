@@ -144,12 +144,17 @@ def write_map_csv(path: Path, slam: MonoSLAM, R_out_world: np.ndarray = np.eye(3
 IMU_SCALE_MIN_EXCITATION = 0.2
 IMU_SCALE_MAX_SIGMA = 0.03
 IMU_SCALE_EARLY_S = 3.0
+#: The scale has settled once every estimate over a longer start of the run is within this of the whole run's.
+IMU_SCALE_SETTLED_REL = 0.02
 
 
 def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
     """The scale and gravity of a natural start's map from the camera's poses (n,) s, (n, 4, 4) and
     the sequence's IMU (imu_scale.estimate_scale): over the first IMU_SCALE_EARLY_S seconds and over
-    the whole run; the whole run's is used when observable. None when the run is too short."""
+    the whole run; the whole run's is used when observable. How it converged while the camera
+    moved: the estimate over the run's first 1, 2, 4, ... s (``history``), and from how many
+    seconds on every such estimate lies within IMU_SCALE_SETTLED_REL of the whole run's
+    (``settled_s``; None if only the whole run's does). None when the run is too short."""
     from .imu_scale import estimate_scale, gravity_aligned
 
     R, p = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
@@ -158,15 +163,32 @@ def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
         return None
     early = t <= t[0] + IMU_SCALE_EARLY_S
     first = estimate_scale(t[early], p[early], R[early], imu.t, imu.gyro, imu.accel)
+    history = []
+    span = 1.0
+    while span < t[-1] - t[0]:
+        k = t <= t[0] + span
+        e = estimate_scale(t[k], p[k], R[k], imu.t, imu.gyro, imu.accel)
+        history.append({"seconds": span, "scale": e.scale if e is not None else None,
+                        "sigma_rel": e.sigma_rel if e is not None else None})
+        span *= 2.0
+    history.append({"seconds": float(t[-1] - t[0]), "scale": full.scale, "sigma_rel": full.sigma_rel})
+    settled_s = None
+    for h in reversed(history[:-1]):
+        if h["scale"] is None or abs(h["scale"] / full.scale - 1.0) > IMU_SCALE_SETTLED_REL:
+            break
+        settled_s = h["seconds"]
     usable = full.excitation >= IMU_SCALE_MIN_EXCITATION and full.sigma_rel <= IMU_SCALE_MAX_SIGMA
     said = (f"scale from the IMU: {full.scale:.4g} m per map unit (+- {100 * full.sigma_rel:.1f}%, the camera's "
-            f"acceleration {full.excitation:.2f} m/s^2 RMS)" + ("" if usable else
-            "; too weakly observed, the scale stays arbitrary"))
+            f"acceleration {full.excitation:.2f} m/s^2 RMS" +
+            (f"; within {100 * IMU_SCALE_SETTLED_REL:.0f}% of it from the run's first {settled_s:g} s on)"
+             if settled_s is not None else ")") +
+            ("" if usable else "; too weakly observed, the scale stays arbitrary"))
     return {"usable": bool(usable), "scale": full.scale, "sigma_rel": full.sigma_rel, "excitation_m_s2": full.excitation,
             "g_world": full.g_world.tolist(), "accel_bias": full.accel_bias.tolist(),
             "R_up_world": gravity_aligned(full.g_world).tolist(),
             "scale_first_3s": first.scale if first is not None else None,
-            "sigma_rel_first_3s": first.sigma_rel if first is not None else None, "said": said}
+            "sigma_rel_first_3s": first.sigma_rel if first is not None else None,
+            "history": history, "settled_s": settled_s, "said": said}
 
 
 def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
