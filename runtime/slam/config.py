@@ -343,7 +343,8 @@ class ViewSettings:
     view_noise_scale: float = 1.5        # (angle, range ratio) from its first view
     margin_px: float = 12.0
     match_score: float = 0.25            # zero-mean normalised SSD 2 (1 - ZNCC): ZNCC >= 0.875
-    max_search_area_px: int = 40_000     # an ellipse larger than this is not searched
+    max_search_area_px: int = 40_000     # an ellipse larger than this is not searched (px^2 at 640 px width,
+                                         # in proportion to the image's area above it)
 
 
 @dataclass(frozen=True)

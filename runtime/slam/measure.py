@@ -38,6 +38,9 @@ class Measurement:
         self.cam, self.settings, self.sigma_pixel = cam, settings, float(sigma_pixel)
         self.seed, self.target = seed, target
         self.guided = 0             # features the last search guided (search)
+        # The search cap grows with the image above 640 px width (an ellipse's area goes as the
+        # focal length squared); smaller images keep it.
+        self.search_cap_px = settings.views.max_search_area_px * max(1.0, (cam.width / 640.0) ** 2)
         self.over_cap = 0           # guides the last search took over the search cap (select)
         self._rescue: np.ndarray | None = None   # those guides' indices into select's features
 
@@ -66,7 +69,7 @@ class Measurement:
         S = innovation_covariances(state, pred, self.sigma_pixel**2, r_scale)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         area = 9 * math.pi * np.sqrt(np.maximum(det, 0))   # the 3-sigma ellipse, px^2
-        searchable = np.isfinite(area) & (area <= s.views.max_search_area_px)
+        searchable = np.isfinite(area) & (area <= self.search_cap_px)
         visible = int(len(sel))
         idx = np.flatnonzero(searchable)
         rescue = self._rescue_guides(area, searchable)
@@ -138,8 +141,8 @@ class Measurement:
         # Guided: the first features' matches narrow the rest's regions (guided.py); the update
         # is still made from every match against the prior.
         z = np.full((len(feats), 2), np.nan)
-        cap = s.views.max_search_area_px if rescue is None else \
-            max(s.views.max_search_area_px, s.measure.rescue_area_px * (self.cam.width / 640.0) ** 2)
+        cap = self.search_cap_px if rescue is None else \
+            max(self.search_cap_px, s.measure.rescue_area_px * (self.cam.width / 640.0) ** 2)
         z[first], _ = self._match(g, m, [feats[i] for i in first], warp[first], Y[first], pred.uv[first], S[first],
                                   cap)
         rest = np.setdiff1d(np.arange(len(feats)), first)
@@ -155,7 +158,7 @@ class Measurement:
         ``max_area``, px^2; default the search cap): z (m, 2) NaN where not found, and found (m,)."""
         s = self.settings
         z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score,
-                                     s.views.max_search_area_px if max_area is None else max_area)
+                                     self.search_cap_px if max_area is None else max_area)
         z[~found] = np.nan
         return z, found
 
