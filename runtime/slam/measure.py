@@ -41,6 +41,8 @@ class Measurement:
         # The search cap grows with the image above 640 px width (an ellipse's area goes as the
         # focal length squared); smaller images keep it.
         self.search_cap_px = settings.views.max_search_area_px * max(1.0, (cam.width / 640.0) ** 2)
+        # The rescue's guides may be larger (_rescue_guides).
+        self.rescue_cap_px = max(self.search_cap_px, settings.measure.rescue_area_px * (cam.width / 640.0) ** 2)
         self.over_cap = 0           # guides the last search took over the search cap (select)
         self._rescue: np.ndarray | None = None   # those guides' indices into select's features
 
@@ -102,8 +104,7 @@ class Measurement:
         n_ok = int(np.count_nonzero(searchable))
         if g.guide_first <= 0 or n_ok >= g.guide_first or 2 * n_ok >= np.count_nonzero(np.isfinite(area)):
             return None
-        cap = g.rescue_area_px * (self.cam.width / 640.0) ** 2
-        over = np.flatnonzero(np.isfinite(area) & ~searchable & (area <= cap))
+        over = np.flatnonzero(np.isfinite(area) & ~searchable & (area <= self.rescue_cap_px))
         if not len(over):
             return None
         take = over[np.argsort(area[over], kind="stable")][:g.guide_first - n_ok]
@@ -141,10 +142,8 @@ class Measurement:
         # Guided: the first features' matches narrow the rest's regions (guided.py); the update
         # is still made from every match against the prior.
         z = np.full((len(feats), 2), np.nan)
-        cap = self.search_cap_px if rescue is None else \
-            max(self.search_cap_px, s.measure.rescue_area_px * (self.cam.width / 640.0) ** 2)
         z[first], _ = self._match(g, m, [feats[i] for i in first], warp[first], Y[first], pred.uv[first], S[first],
-                                  cap)
+                                  self.search_cap_px if rescue is None else self.rescue_cap_px)
         rest = np.setdiff1d(np.arange(len(feats)), first)
         guide = guided_regions(m.state, pred, S, first, z[first], s.ransac, s.measure.guide_floor_px)
         uv_r, S_r = (guide.uv, guide.S) if guide is not None else (pred.uv[rest], S[rest])
