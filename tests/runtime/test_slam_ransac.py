@@ -262,7 +262,7 @@ def test_the_tracker_votes_by_each_features_record():
     from runtime.slam.measure import Measurement
     from runtime.slam.map_feature import MapFeature
 
-    measurement = Measurement(None, MapSettings(), 1.0, 0, None)
+    measurement = Measurement(CAM, MapSettings(), 1.0, 0, None)
     records = [(1, 0), (60, 60), (10, 5), (4, 1)]
     features = [MapFeature(i, np.zeros((5, 5), np.float32), 0, np.zeros(3), attempts=a, successes=s)
                 for i, (a, s) in enumerate(records)]
