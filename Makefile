@@ -39,10 +39,10 @@ demo: setup
 	$(VENV)/bin/wvr demo --out $(OUT)
 	@echo "open $(OUT)/report.md"
 
-# One worker per core; a file stays on one worker so its module fixtures are built once.
+# One worker per core; a file stays on one worker so its module fixtures are built once; the
+# notebooks run in the same pool.
 test: setup
-	$(PY) -m pytest -q -n auto --dist loadfile tests
-	$(PY) -m pytest -q --nbmake notebooks
+	$(PY) -m pytest -q -n auto --dist loadfile --nbmake tests notebooks
 	d=$$(mktemp -d); NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet --site-dir $$d; s=$$?; rm -rf $$d; exit $$s
 
 bench: setup
