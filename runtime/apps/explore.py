@@ -220,6 +220,15 @@ def score_views(state: State, cam: CameraIntrinsics, T_cam_cands: np.ndarray, si
     return ViewScores(np.array(out_info, float), np.array(out_vis, int), np.array(out_empty, float), along)
 
 
+def grid_angles(settings: ExploreSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The settings' grid, azimuth-major: each direction's azimuth and elevation (n,), (n,) rad
+    (``azimuth_deg`` and ``elevation_deg``, each (start, stop, step) degrees, both ends in)."""
+    az = np.radians(np.arange(settings.azimuth_deg[0], settings.azimuth_deg[1] + 1e-9, settings.azimuth_deg[2]))
+    el = np.radians(np.arange(settings.elevation_deg[0], settings.elevation_deg[1] + 1e-9, settings.elevation_deg[2]))
+    A, E = np.meshgrid(az, el, indexing="ij")
+    return A.ravel(), E.ravel()
+
+
 def candidate_directions(head: HeadGeometry, T_world_mount: np.ndarray, settings: ExploreSettings) -> np.ndarray:
     """(n, 3) world unit directions on the settings' grid: the mount's forward axis (the optic
     axis at zero joint angles, levelled) turned by each azimuth about world up, then tilted by
@@ -231,10 +240,7 @@ def candidate_directions(head: HeadGeometry, T_world_mount: np.ndarray, settings
         f_h = R_wm[:, 0] - (R_wm[:, 0] @ UP) * UP
     f_h /= np.linalg.norm(f_h)
     left = np.cross(UP, f_h)
-    az = np.radians(np.arange(settings.azimuth_deg[0], settings.azimuth_deg[1] + 1e-9, settings.azimuth_deg[2]))
-    el = np.radians(np.arange(settings.elevation_deg[0], settings.elevation_deg[1] + 1e-9, settings.elevation_deg[2]))
-    A, E = np.meshgrid(az, el, indexing="ij")
-    A, E = A.ravel(), E.ravel()
+    A, E = grid_angles(settings)
     d = (np.cos(E) * np.cos(A))[:, None] * f_h + (np.cos(E) * np.sin(A))[:, None] * left + np.sin(E)[:, None] * UP
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
@@ -338,10 +344,7 @@ def choose_beyond_reach(head: HeadGeometry, cam: CameraIntrinsics, state: State,
     around = ExploreSettings(azimuth_deg=settings.around_deg, elevation_deg=settings.elevation_deg,
                              min_shift_deg=0.0, default_depth_m=settings.default_depth_m)
     c = candidate_views(head, T_world_mount, q_current, around, map_points_world)
-    # The directions are azimuth-major (candidate_directions): each azimuth's elevations in turn.
-    n_el = len(np.arange(settings.elevation_deg[0], settings.elevation_deg[1] + 1e-9, settings.elevation_deg[2]))
-    az = np.repeat(np.radians(np.arange(settings.around_deg[0], settings.around_deg[1] + 1e-9,
-                                        settings.around_deg[2])), n_el)
+    az, _ = grid_angles(around)                # each candidate's azimuth from the mount's forward axis
     T_world_mount = np.asarray(T_world_mount, float)
     T_cam_world = np.linalg.inv(T_world_mount @ forward_kinematics(head, np.asarray(q_current, float)).T_mount_cam)
     ks, T_rel = [], []

@@ -66,9 +66,6 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
     if _reachable(head, T, p_world, q_current):
         return Prompt("ok", text="the point is reachable; nothing to ask")
 
-    def turned(psi):
-        return turned_mount(T, psi)
-
     # Coarse to fine, each step of ``turn_step_rad`` as the plain search would meet them: the
     # first band of COARSE steps whose far end is reachable (either way) is searched step by
     # step. About a third of the IK solves of a step-by-step search for a far turn (the
@@ -76,12 +73,12 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
     n = int(round(math.pi / turn_step_rad))
     for b0 in range(0, n, _COARSE):
         b1 = min(b0 + _COARSE, n)
-        if not any(_reachable(head, turned(sign * b1 * turn_step_rad), p_world, q_current) for sign in (1.0, -1.0)):
+        if not any(_reachable(head, turned_mount(T, sign * b1 * turn_step_rad), p_world, q_current) for sign in (1.0, -1.0)):
             continue
         for i in range(b0 + 1, b1 + 1):
             for sign in (1.0, -1.0):
                 psi = sign * i * turn_step_rad
-                if _reachable(head, turned(psi), p_world, q_current):
+                if _reachable(head, turned_mount(T, psi), p_world, q_current):
                     return turn_prompt(psi)
     d = p_world[:2] - T[:2, 3]
     if np.linalg.norm(d) > 1e-9:
