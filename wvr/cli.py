@@ -515,16 +515,18 @@ def _default_alignment(result: Path) -> str:
 
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
-    from runtime.sequence import open_sequence, read_trajectory
+    from runtime.datasets import open_any
+    from runtime.sequence import read_trajectory
     from runtime.eval import trajectory_errors
 
     result = Path(args.result)
     if not result.is_dir():
         raise ValueError(f"{result}: not a folder; give the folder wvr slam wrote (with trajectory.tum)")
     check_complete(result, "SLAM result")
-    seq = open_sequence(args.seq)
+    seq = open_any(args.seq)            # ours, TUM RGB-D, EuRoC or KITTI, as wvr slam reads it
     if seq.groundtruth is None:
-        raise ValueError(f"{args.seq}: no groundtruth.txt to evaluate against")
+        raise ValueError(f"{args.seq}: no ground truth to evaluate against (groundtruth.txt; EuRoC's "
+                         f"state_groundtruth_estimate0; KITTI's poses/NN.txt)")
     est = read_trajectory(result / "trajectory.tum")
     if len(seq.groundtruth) < 2:
         raise ValueError(f"{Path(args.seq) / 'groundtruth.txt'}: holds {len(seq.groundtruth)} poses; the ground "
@@ -1170,7 +1172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _session_log_option(sl)
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
-    ev2.add_argument("seq", help="sequence folder with groundtruth.txt")
+    ev2.add_argument("seq", help="the sequence folder wvr slam read (ours, TUM RGB-D, EuRoC mav0, KITTI), with its ground truth")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
     ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
                      "default from the run's scale: none after a target or a saved map, se3 after a depth or IMU "

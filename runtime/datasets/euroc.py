@@ -18,8 +18,8 @@ x_cam = R_cam_imu x_imu with R_cam_imu = R_BS(cam)^T R_BS(imu). Only the axes ch
 specific force is not moved to the camera's centre (the lever arm, 6.5 cm in EuRoC, adds
 w x (w x r) + dw/dt x r, about 0.07 m/s^2 at 1 rad/s). The ground truth becomes the camera's
 pose T_world_cam = T_world_body T_BS(cam), as groundtruth.txt holds. ORB-SLAM3's
-``MH01_GT.txt`` style (CSV: ns, tx ty tz, qw qx qy qz, already the left camera's pose) is
-read instead when given (``groundtruth=``).
+``MH01_GT.txt`` style (CSV: ns, tx ty tz, qw qx qy qz: the left camera's centre, its rotation
+world-to-camera) is read instead when given (``groundtruth=``).
 """
 
 from __future__ import annotations
@@ -229,9 +229,15 @@ def read_body_groundtruth(path: str | Path, T_body_cam: np.ndarray,
 
 def read_camera_groundtruth(path: str | Path) -> tuple[np.ndarray, Trajectory]:
     """A ground truth already of the camera, ORB-SLAM3's ``MH01_GT.txt`` style (CSV rows 'ns, tx,
-    ty, tz, qw, qx, qy, qz'; ns may carry a '.000' fraction) -> (ns (N,), Trajectory)."""
+    ty, tz, qw, qx, qy, qz'; ns may carry a '.000' fraction) -> (ns (N,), Trajectory).
+
+    Those files hold the camera's centre in the world but the rotation world-to-camera (the
+    conjugate of the camera's orientation): read as camera-to-world, MH_01's rotations turn
+    against its gyro (angular rates uncorrelated on two axes) and put gravity 90 degrees from where
+    its accelerometer has it; conjugated, both agree (benchmarks/NOTES.md). So the quaternion is
+    conjugated here, and T_world_cam is the camera's pose as groundtruth.txt holds it."""
     ns, p, q = _read_pose_csv(Path(path), "timestamp [ns], tx, ty, tz, qw, qx, qy, qz (the camera's pose)", 8)
-    return ns, Trajectory(ns_to_seconds(ns), p, q)
+    return ns, Trajectory(ns_to_seconds(ns), p, q * np.array([-1.0, -1.0, -1.0, 1.0]))
 
 
 # ---------------------------------------------------------------------------------------------

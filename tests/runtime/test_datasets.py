@@ -11,11 +11,12 @@ import math
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, save_camera
 from runtime.datasets import (convert_euroc, convert_kitti, dataset_kind, ns_to_text, open_any, open_euroc,
                               open_kitti, read_depth, read_stamps_ns)
-from runtime.sequence import SequenceError
+from runtime.sequence import SequenceError, write_trajectory
 from wvr.cli import main
 
 W, H = 32, 24
@@ -172,9 +173,27 @@ def test_euroc_orbslam_groundtruth_file(tmp_path):
     seq = open_euroc(tmp_path, groundtruth=gt)
     assert seq.groundtruth_ns.tolist() == [T0, T0 + DT]
     np.testing.assert_allclose(seq.groundtruth.p_world_cam, [[4.5, -1.5, 0.75], [4.6, -1.5, 0.75]])
-    np.testing.assert_allclose(seq.groundtruth.q_xyzw[0], [S, 0, 0, S], atol=1e-12)   # w first in the file
+    # w first in the file, and the rotation world-to-camera there: conjugated.
+    np.testing.assert_allclose(seq.groundtruth.q_xyzw[0], [-S, 0, 0, S], atol=1e-12)
     # Already the camera's: T_BS is not applied.
     np.testing.assert_allclose(seq.groundtruth.T_world_cam()[1, :3, :3], np.eye(3), atol=1e-12)
+
+
+def test_orbslam_groundtruth_turns_as_the_gyro_says(tmp_path):
+    """Two consecutive rows of ORB-SLAM3's MH01_GT.txt (50 ms apart, the fastest turn of MH_01's
+    first 35 s) read as the camera's poses turn as EuRoC's gyro measured over that interval
+    (imu0, rotated into cam0's frame by the sensors' T_BS): 0.28, 0.74, 0.51 rad/s."""
+    make_mav0(tmp_path, gt=False)
+    gt = tmp_path / "MH01_GT.txt"
+    gt.write_text("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+                  "1403636593913555456.0000000000,4.7806380295,-1.9582612030,0.7859340459,0.3198183286,"
+                  "0.7623086407,0.4903063799,-0.276046059218\n"
+                  "1403636593963555584.0000000000,4.7995886731,-1.9390944066,0.7854697939,0.3308205249,"
+                  "0.7702916180,0.4744559940,-0.268514642658\n")
+    traj = open_euroc(tmp_path, groundtruth=gt).groundtruth
+    T = traj.T_world_cam()
+    w_cam = Rotation.from_matrix(T[0, :3, :3].T @ T[1, :3, :3]).as_rotvec() / (traj.t[1] - traj.t[0])
+    np.testing.assert_allclose(w_cam, [0.279, 0.739, 0.506], atol=0.1)
 
 
 def test_euroc_reduced_set_reads_the_images_present(tmp_path):
@@ -218,6 +237,24 @@ def test_cli_convert_euroc(tmp_path, capsys):
     rc, out = _run_cli(["convert", "euroc", str(tmp_path / "src"), "--out", str(tmp_path / "seq")], capsys)
     # The folder holds the first conversion's finished results: refused, one line, naming the fix.
     assert rc == 2 and "already holds the finished" in out.err and "another --out" in out.err
+
+
+
+def test_cli_eval_reads_a_mav0_folder_as_shipped(tmp_path, capsys):
+    """wvr eval scores against EuRoC's own ground truth (the body's, moved to the camera), as wvr
+    slam reads the folder: a trajectory equal to it scores 0, one 5 cm off along x scores 5 cm."""
+    make_mav0(tmp_path)
+    gt = open_any(tmp_path).groundtruth
+    T = gt.T_world_cam()
+    for name, dx in (("same", 0.0), ("off", 0.05)):
+        (tmp_path / name).mkdir()
+        T_est = T.copy()
+        T_est[:, 0, 3] += dx
+        write_trajectory(tmp_path / name / "trajectory.tum", gt.t, T_est)
+        rc, out = _run_cli(["eval", str(tmp_path / "mav0"), str(tmp_path / name), "--align", "none"], capsys)
+        assert rc == 0, out.err
+        assert "poses matched: 3 of 3" in out.out
+        assert f"ATE (no alignment):  RMSE {100 * dx:.2f} cm" in out.out, out.out
 
 
 # ------------------------------------------------------------------------------------- KITTI
