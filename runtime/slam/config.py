@@ -286,6 +286,7 @@ class InverseDepthSettings:
     rho0: float = 1.0                    # initial inverse depth, 1/m, until the map has depths
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
     scene_depth_prior: bool = True       # rho0: the median of the frame's matches (inverse_depth.scene_prior)
+    scene_depth_spread: bool = True      # sigma_rho at least the spread of their inverse depths (a deep scene)
     linearity_threshold: float = 0.02    # convert to a point below this linearity index (Civera et al.: 0.1),
     linearity_threshold_narrow: float = 0.1  # or this one below NARROW_WIDTH_PX, where speed decides (NOTES)
 

@@ -71,15 +71,18 @@ def test_new_features_start_at_the_median_depth_of_the_frames_matches():
     """Five used points at 1.5-6 m (median 3 m) and the unused ones at 20 m: the new features'
     inverse depth is 1/3 with the configured relative width (sigma_rho / rho0 = 0.5), not the
     configured 1 m; the deletion before the addition renumbers the map, and the used points are
-    still the ones read."""
-    slam, img, natural = tracker_with_points(MapSettings(use_imu=False))
-    used, unused = natural[1:6], [natural[0]] + natural[6:]
-    place(slam, used, [1.5, 2.0, 3.0, 5.0, 6.0])
-    place(slam, unused, [20.0] * len(unused))
-    new = add_after(slam, img, used, remove_first=natural[0])
-    for k in new:
-        rho, sigma = rho_and_sigma(slam, k)
-        assert rho == pytest.approx(1 / 3) and sigma == pytest.approx(1 / 6, rel=1e-6)
+    still the ones read. With the scene's spread (the default), the width is half the 16th-84th
+    percentile range of their inverse depths (1/6, 0.2, 1/3, 0.5, 2/3: 0.188 to 0.56), 0.186,
+    wider than the relative width's 1/6."""
+    for spread, width in ((False, 1 / 6), (True, 0.186)):
+        slam, img, natural = tracker_with_points(MapSettings(use_imu=False, scene_depth_spread=spread))
+        used, unused = natural[1:6], [natural[0]] + natural[6:]
+        place(slam, used, [1.5, 2.0, 3.0, 5.0, 6.0])
+        place(slam, unused, [20.0] * len(unused))
+        new = add_after(slam, img, used, remove_first=natural[0])
+        for k in new:
+            rho, sigma = rho_and_sigma(slam, k)
+            assert rho == pytest.approx(1 / 3) and sigma == pytest.approx(width, rel=1e-6)
 
 
 @pytest.mark.parametrize("case", ["four used", "fixed by the settings"])

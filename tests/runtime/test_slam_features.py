@@ -184,17 +184,25 @@ def test_update_moves_towards_the_measurement_and_shrinks_covariance():
 
 def test_scene_prior_is_the_median_inverse_depth_seen_from_the_camera():
     """Points 0.5-10 m from the camera centre (not the origin): the prior is the median of their
-    inverse distances with the configured relative width; fewer than five finite points (a NaN
-    one does not count) leave the configured prior."""
+    inverse distances with the configured relative width, or (a deep scene) the points' own
+    spread of inverse distances where that is wider; fewer than five finite points (a NaN one
+    does not count) leave the configured prior."""
     rng = np.random.default_rng(3)
     r = np.array([0.3, -0.2, 0.1])
     dirs = rng.normal(size=(6, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     d = np.array([0.5, 0.8, 2.0, 4.0, 5.0, 10.0])           # inverse: 2, 1.25, 0.5, 0.25, 0.2, 0.1
     Y = r + dirs * d[:, None]
-    rho, sigma = inverse_depth.scene_prior(Y, r, 1.0, 0.5)
+    rho, sigma = inverse_depth.scene_prior(Y, r, 1.0, 0.5, spread=False)
     assert rho == pytest.approx(0.375) and sigma == pytest.approx(0.1875)
-    assert inverse_depth.scene_prior(Y, r, 2.0, 0.5) == pytest.approx((0.375, 0.09375))
+    assert inverse_depth.scene_prior(Y, r, 2.0, 0.5, spread=False) == pytest.approx((0.375, 0.09375))
+    # The 16th and 84th percentiles of the inverse distances (linear between the sorted six):
+    # 0.1 + 0.8 * 0.1 = 0.18 and 1.25 + 0.2 * 0.75 = 1.4; half their range is wider than 0.1875.
+    assert inverse_depth.scene_prior(Y, r, 1.0, 0.5) == pytest.approx((0.375, 0.61))
+    # A shallow scene (2.0-2.2 m) keeps the relative width: its spread is narrower.
+    shallow = r + dirs * np.linspace(2.0, 2.2, 6)[:, None]
+    rho, sigma = inverse_depth.scene_prior(shallow, r, 1.0, 0.5)
+    assert sigma == pytest.approx(0.5 * rho) and rho == pytest.approx(1 / 2.1, rel=1e-3)
     few = Y[:5].copy()
     few[0] = np.nan
     assert inverse_depth.scene_prior(few, r, 1.0, 0.5) == (1.0, 0.5)

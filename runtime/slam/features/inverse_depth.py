@@ -16,7 +16,8 @@ Undelayed initialisation: the feature enters the state at its first observation 
 ``rho = rho0`` and a ``sigma_rho`` wide enough that its 95% interval holds depths from the near
 limit to infinity (``rho = 0``): it is measured from its first frame, giving orientation at
 once and depth as parallax accumulates, distant points included. Once the map has depths,
-``rho0`` is the median inverse depth of the points matched in the frame (:func:`scene_prior`).
+``rho0`` is the median inverse depth of the points matched in the frame, its width at least their
+spread (:func:`scene_prior`).
 
 Measurement (scale-free because projection is)::
 
@@ -155,24 +156,29 @@ def linearity_index(y, anchor, sigma_rho: float, r_cam) -> float:
     return 4.0 * (sigma_rho / rho**2) * abs(cos_a) / max(d1, 1e-12)
 
 
-def scene_prior(Y, r_cam, rho0: float, sigma_rho: float, min_points: int = 5) -> tuple[float, float]:
+def scene_prior(Y, r_cam, rho0: float, sigma_rho: float, min_points: int = 5, spread: bool = True
+                ) -> tuple[float, float]:
     """A new feature's inverse-depth prior (mean, standard deviation), 1/m, from the points ``Y``
     (k, 3) (world, m) just matched from the camera centre ``r_cam`` (3,): the median of their
     inverse distances, with the configured prior's relative width ``sigma_rho / rho0`` (so its
-    95% interval still reaches infinity). With fewer than ``min_points`` finite points, the
-    configured ``(rho0, sigma_rho)``.
+    95% interval still reaches infinity) or, with ``spread``, the points' own spread of inverse
+    distances (half their 16th-84th percentile range) where that is wider. With fewer than
+    ``min_points`` finite points, the configured ``(rho0, sigma_rho)``.
 
     A fixed mean pulls a monocular map's scale towards its depth: features start at it, and
     until their parallax outweighs it the camera's translation is read at that depth's scale.
     Centred on the depths the map already holds, a new feature agrees with the map's scale and
-    pulls it nowhere."""
+    pulls it nowhere. In a deep scene (a hall seen past a near pallet, a road) a new feature may
+    lie anywhere in the scene's depths, and a prior narrower than they are pulls the scale as a
+    wrong mean would (benchmarks/NOTES.md: MH_01's first second ran at half the later scale)."""
     Y = np.asarray(Y, float).reshape(-1, 3)
     d = np.linalg.norm(Y - np.asarray(r_cam, float), axis=1)
     rho = 1.0 / d[np.isfinite(d) & (d > 0)]
     if len(rho) < min_points:
         return float(rho0), float(sigma_rho)
-    mean = float(np.median(rho))
-    return mean, mean * float(sigma_rho) / float(rho0)
+    lo, mean, hi = (float(v) for v in np.percentile(rho, [16, 50, 84]))
+    sigma = mean * float(sigma_rho) / float(rho0)
+    return mean, max(sigma, 0.5 * (hi - lo)) if spread else sigma
 
 
 def angles_and_jacobian(h) -> tuple[float, float, np.ndarray]:
