@@ -15,7 +15,9 @@ The data stay outside the repository (benchmarks/datasets.md says how to fetch t
     python benchmarks/bench_slam_real.py [FOLDER ...]
 
 with no folder, the environment's ``WVR_EUROC_MH01``, ``WVR_KITTI07`` and ``WVR_TUM`` (one or
-more TUM RGB-D folders separated by ``:``) are used.
+more TUM RGB-D folders separated by ``:``) are used, and ``WVR_EUROC_MH01_IMU`` with its IMU.
+``--imu`` runs the given folders with their IMU: the scale is then the IMU's (metric), and the
+metric ATE column is after an SE(3) alignment (the world is the first camera's frame).
 """
 
 from __future__ import annotations
@@ -43,8 +45,8 @@ PUBLISHED_CM = {
 }
 
 
-def run(folder: Path, max_frames: int | None = None) -> dict:
-    """One camera-only run over ``folder``: the scores of the table's row."""
+def run(folder: Path, max_frames: int | None = None, imu: bool = False) -> dict:
+    """One run over ``folder``, camera only unless ``imu``: the scores of the table's row."""
     from dataclasses import replace
 
     from runtime.datasets import open_any
@@ -56,7 +58,7 @@ def run(folder: Path, max_frames: int | None = None) -> dict:
     seq = open_any(folder)
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "out"
-        r = run_slam(folder, out, max_frames=max_frames, settings=replace(MapSettings(), use_imu=False), progress=False)
+        r = run_slam(folder, out, max_frames=max_frames, settings=replace(MapSettings(), use_imu=imu), progress=False)
         stats = json.loads((out / "stats.json").read_text())
         est = read_trajectory(out / "trajectory.tum")
     e = trajectory_errors(est, seq.groundtruth) if seq.groundtruth is not None and len(est.t) > 1 else None
@@ -66,7 +68,8 @@ def run(folder: Path, max_frames: int | None = None) -> dict:
     return {"name": Path(seq.root).name if Path(seq.root).name != "mav0" else Path(seq.root).parent.name,
             "frames": r.frames, "before_start": r.frames_before_start, "lost": r.lost_frames, "scale": r.scale,
             "ate_sim3_cm": 100 * e.ate_sim3_rmse_m if e else float("nan"),
-            "ate_none_cm": 100 * e.ate_rmse_m if e else float("nan"),
+            # Metric scales: none after a target or a map (their frame), SE(3) after depth or the IMU.
+            "ate_metric_cm": 100 * e.ate("se3" if r.scale in ("depth", "imu") else "none")[0] if e else float("nan"),
             "sim3_scale": e.sim3_scale if e else float("nan"),
             "ms_median": float(np.median(ms)) if len(ms) else float("nan"),
             "ms_p99": float(np.percentile(ms, 99)) if len(ms) else float("nan"),
@@ -79,27 +82,28 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("folders", nargs="*", type=Path)
     p.add_argument("--max-frames", type=int)
+    p.add_argument("--imu", action="store_true", help="run the folders with their IMU (its scale)")
     a = p.parse_args()
-    folders = list(a.folders)
+    folders = [(f, a.imu) for f in a.folders]
     if not folders:
-        for var in ("WVR_EUROC_MH01", "WVR_KITTI07", "WVR_TUM"):
-            folders += [Path(v) for v in os.environ.get(var, "").split(":") if v]
+        for var in ("WVR_EUROC_MH01", "WVR_KITTI07", "WVR_TUM", "WVR_EUROC_MH01_IMU"):
+            folders += [(Path(v), var.endswith("_IMU")) for v in os.environ.get(var, "").split(":") if v]
     if not folders:
         # make bench runs every benchmark: without the public data this one has nothing to say.
         print("bench_slam_real: skipped: no sequence; give folders or set WVR_EUROC_MH01, WVR_KITTI07, WVR_TUM "
               "(benchmarks/datasets.md)")
         return 0
-    print("| sequence | frames (before start) | lost | scale (Sim3 factor) | ATE Sim3 cm | ATE none cm | "
+    print("| sequence | frames (before start) | lost | scale (Sim3 factor) | ATE Sim3 cm | ATE metric cm | "
           "ms median / p99 / max | CPU ms median / p99 / max | ORB-SLAM / PTAM / LSD-SLAM cm |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for folder in folders:
-        r = run(folder, a.max_frames)
+    for folder, imu in folders:
+        r = run(folder, a.max_frames, imu)
         pub = PUBLISHED_CM.get(r["name"])
         pub_s = " / ".join("X" if pub[k] is None else f"{pub[k]:.2f}" for k in ("ORB-SLAM", "PTAM", "LSD-SLAM")) \
             if pub else "-"
-        none = f"{r['ate_none_cm']:.2f}" if r["scale"] != "arbitrary" else "-"
-        print(f"| {r['name']} | {r['frames']} ({r['before_start']}) | {r['lost']} | {r['scale']} (x{r['sim3_scale']:.3f}) "
-              f"| {r['ate_sim3_cm']:.2f} | {none} | {r['ms_median']:.1f} / {r['ms_p99']:.1f} / {r['ms_max']:.1f} "
+        metric = f"{r['ate_metric_cm']:.2f}" if r["scale"] != "arbitrary" else "-"
+        print(f"| {r['name']}{' with its IMU' if imu else ''} | {r['frames']} ({r['before_start']}) | {r['lost']} | {r['scale']} (x{r['sim3_scale']:.3f}) "
+              f"| {r['ate_sim3_cm']:.2f} | {metric} | {r['ms_median']:.1f} / {r['ms_p99']:.1f} / {r['ms_max']:.1f} "
               f"| {r['cpu_ms'][0]:.1f} / {r['cpu_ms'][1]:.1f} / {r['cpu_ms'][2]:.1f} "
               f"| {pub_s} |", flush=True)
     return 0
