@@ -26,6 +26,34 @@ from pymoo.util.ref_dirs import get_reference_directions
 from .pareto import non_dominated
 
 
+def _cache_age_kernels() -> None:
+    """pymoo jit-compiles AGE-MOEA2's numba kernels without an on-disk cache, so every process
+    that runs the search spent ~7 s compiling them again: the same functions with the same flags
+    (nopython, fastmath), now compiled once into numba's cache. Same machine code, same results;
+    a pymoo without these kernels is left as it is."""
+    import numba
+    from pymoo.algorithms.moo import age, age2
+
+    def cached(kernel):
+        return numba.njit(cache=True, fastmath=True)(kernel.py_func)
+
+    kernels = [getattr(age, "point_2_line_distance", None), getattr(age, "find_corner_solutions", None),
+               getattr(age2, "project_on_manifold", None),
+               getattr(age.AGEMOEASurvival, "minkowski_distances", None),
+               getattr(age2.AGEMOEA2Survival, "pairwise_distances", None)]
+    if not all(isinstance(k, numba.core.registry.CPUDispatcher) for k in kernels):
+        return
+    # Callees first: a kernel's callees are looked up in its module when it is compiled.
+    age.point_2_line_distance = cached(age.point_2_line_distance)
+    age.find_corner_solutions = cached(age.find_corner_solutions)
+    age2.project_on_manifold = cached(age2.project_on_manifold)
+    age.AGEMOEASurvival.minkowski_distances = staticmethod(cached(age.AGEMOEASurvival.minkowski_distances))
+    age2.AGEMOEA2Survival.pairwise_distances = staticmethod(cached(age2.AGEMOEA2Survival.pairwise_distances))
+
+
+_cache_age_kernels()
+
+
 class AskTell:
     """Interface: ``ask() -> X (n, n_var)``; ``tell(X, F, G)``. ``batch_size`` designs per ask."""
 
