@@ -453,7 +453,7 @@ def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float
     covariance (each draw's best-fitting pose, about this one) holds the spread PnP really has.
     The draws' seed is fixed, so a start is repeatable."""
     rng = np.random.default_rng(COVARIANCE_SEED)
-    D = []
+    dR, dr = [], []
     for _ in range(COVARIANCE_DRAWS):
         xy = undistort(cam, uv + rng.normal(0.0, sigma_px, uv.shape))
         if not np.isfinite(xy).all():
@@ -463,10 +463,12 @@ def _sampled_covariance(cam: CameraIntrinsics, xyz, uv, R_wc, r, sigma_px: float
             e = _pose_residuals(cam, xyz, uv, R2, r2)
             e = float(e @ e) if np.isfinite(e).all() else np.inf
             if e < best_e:
-                best, best_e = np.r_[Rotation.from_matrix(R_wc.T @ R2).as_rotvec(), r2 - r], e
+                best, best_e = (R2, r2), e
         if best is not None:
-            D.append(best)
-    D = np.array(D)
+            dR.append(R_wc.T @ best[0])
+            dr.append(best[1] - r)
+    # The rotations converted together: one scipy call instead of one per draw and pose.
+    D = np.hstack([Rotation.from_matrix(np.array(dR)).as_rotvec(), np.array(dr)]) if dR else np.zeros((0, 6))
     J = pose_jacobians(cam, xyz, R_wc, r)[1].reshape(-1, 6)
     linear = sigma_px**2 * np.linalg.pinv(J.T @ J)
     if len(D) < 20:
