@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cvxpy as cp
 import numpy as np
 
 
@@ -39,6 +38,11 @@ class RateQP:
     """Joint-rate QP built once; :meth:`solve` sets the parameters and re-solves (Clarabel)."""
 
     def __init__(self, settings: RateQPSettings = RateQPSettings()):
+        # Imported here, not with the module: cvxpy takes ~1 s to import, and every `wvr` command
+        # imports the gaze package (its parser lists the closed loop's tasks) without a QP to solve.
+        import cvxpy as cp
+
+        self._cp = cp
         self.settings = settings
         self.qd = cp.Variable(3, name="qd")
         # The objective is written as one stacked least-squares | A qd - b |^2: the gaze term,
@@ -82,6 +86,7 @@ class RateQP:
         self.A.value = np.vstack([WJ, a_s * np.eye(3), a_r * np.eye(3)])
         self.b.value = np.concatenate([WJ @ qd_des, a_s * qd_prev, np.zeros(3)])
         self.lo.value, self.hi.value = lo, hi
+        cp = self._cp
         try:
             self.problem.solve(solver=cp.CLARABEL)
             ok = self.problem.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) and self.qd.value is not None

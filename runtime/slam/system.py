@@ -50,7 +50,6 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2
 
 from kinematics.camera import CameraIntrinsics
 
@@ -111,6 +110,8 @@ class MonoSLAM:
         self.imu = ImuStream(settings)
         self.messages: list[str] = []      # what the console should say (IMU problems, ...)
         d = settings.deletion
+        # Imported here: scipy.stats takes ~0.7 s to import, and every `wvr` command imports this module.
+        from scipy.stats import chi2
         self.nis_limit = float(chi2.ppf(d.consistency_confidence, 2 * d.consistency_window))
         self.linearity_threshold = (settings.inverse_depth.linearity_threshold if camera.width >= NARROW_WIDTH_PX
                                     else settings.inverse_depth.linearity_threshold_narrow)
