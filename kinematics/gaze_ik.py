@@ -26,6 +26,7 @@ import numpy as np
 
 from .chain import forward_kinematics
 from .geometry import JOINT_NAMES, HeadGeometry
+from .transforms import cross3
 
 #: Default cone around the zenith/nadir in which "image vertical" has no meaning.
 ZENITH_CONE_RAD = math.radians(5.0)
@@ -99,7 +100,7 @@ def paden_kahan_2(w1: np.ndarray, w2: np.ndarray, p: np.ndarray, q: np.ndarray) 
         raise ValueError("the elevation and pan axes are parallel; the head cannot point in 3D")
     alpha = (c12 * (w2 @ p) - (w1 @ q)) / denom
     beta = (c12 * (w1 @ q) - (w2 @ p)) / denom
-    w12 = np.cross(w1, w2)
+    w12 = cross3(w1, w2)
     g2 = (p @ p - alpha * alpha - beta * beta - 2.0 * alpha * beta * c12) / (w12 @ w12)
     if g2 < -1e-12:
         return []
@@ -117,7 +118,7 @@ def _subproblem_1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> float:
     """The angle t with R(w, t) p = q (components along w assumed equal)."""
     pp = p - w * (w @ p)
     qp = q - w * (w @ q)
-    return math.atan2(float(w @ np.cross(pp, qp)), float(pp @ qp))
+    return math.atan2(float(w @ cross3(pp, qp)), float(pp @ qp))
 
 
 def _wrap_into_range(t: float, lo: float, hi: float) -> float:
@@ -131,7 +132,7 @@ def _wrap_into_range(t: float, lo: float, hi: float) -> float:
 
 
 def _pointing_sigma_min(axes_mount: np.ndarray, d: np.ndarray) -> float:
-    J = np.column_stack([np.cross(axes_mount[0], d), np.cross(axes_mount[1], d)])
+    J = np.column_stack([cross3(axes_mount[0], d), cross3(axes_mount[1], d)])
     return float(np.linalg.svd(J, compute_uv=False)[-1])
 
 
@@ -140,13 +141,13 @@ def _cyclotorsion_for_vertical(head: HeadGeometry, q12: tuple[float, float], up:
     """The cyclotorsion angle that makes optical x horizontal with optical y pointing down."""
     pose0 = forward_kinematics(head, np.array([q12[0], q12[1], 0.0]))
     d = pose0.optic_axis
-    x_des = np.cross(d, up)
+    x_des = cross3(d, up)
     if np.linalg.norm(x_des) < math.sin(cone):
         return q3_hold, False
     x_des /= np.linalg.norm(x_des)
     x0 = pose0.R_mount_cam[:, 0]
     a3 = pose0.axes_mount[2]
-    return math.atan2(float(a3 @ np.cross(x0, x_des)), float(x0 @ x_des)), True
+    return math.atan2(float(a3 @ cross3(x0, x_des)), float(x0 @ x_des)), True
 
 
 def _finish(head: HeadGeometry, candidates: list[np.ndarray], q_current: np.ndarray, d_of, vertical: bool,

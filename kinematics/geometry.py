@@ -33,6 +33,7 @@ import numpy as np
 import tomli_w
 
 from .tomlfile import brief, read_toml
+from .transforms import cross3
 from .servo_models import SERVO_CATALOGUE, ServoModel, servo_from_dict
 
 JOINT_NAMES: tuple[str, str, str] = ("elevation", "pan", "cyclotorsion")
@@ -80,7 +81,7 @@ class CameraMount:
         """(3, 3) rotation taking optical-frame vectors to the cyclotorsion link frame."""
         z = np.asarray(self.forward, float)
         x = np.asarray(self.right, float)
-        return np.column_stack([x, np.cross(z, x), z])
+        return np.column_stack([x, cross3(z, x), z])
 
     @property
     def T_link_cam(self) -> np.ndarray:
