@@ -42,7 +42,6 @@ class RateQP:
         # imports the gaze package (its parser lists the closed loop's tasks) without a QP to solve.
         import cvxpy as cp
 
-        self._cp = cp
         self.settings = settings
         self.qd = cp.Variable(3, name="qd")
         # The objective is written as one stacked least-squares | A qd - b |^2: the gaze term,
@@ -86,7 +85,8 @@ class RateQP:
         self.A.value = np.vstack([WJ, a_s * np.eye(3), a_r * np.eye(3)])
         self.b.value = np.concatenate([WJ @ qd_des, a_s * qd_prev, np.zeros(3)])
         self.lo.value, self.hi.value = lo, hi
-        cp = self._cp
+        import cvxpy as cp      # loaded by __init__; a module in an attribute would not deep-copy or pickle
+
         try:
             self.problem.solve(solver=cp.CLARABEL)
             ok = self.problem.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) and self.qd.value is not None
