@@ -515,15 +515,17 @@ def _default_alignment(result: Path) -> str:
 
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
-    from runtime.datasets import open_any
-    from runtime.sequence import read_trajectory
+    from runtime.datasets import dataset_kind, open_any
+    from runtime.sequence import open_sequence, read_trajectory
     from runtime.eval import trajectory_errors
 
     result = Path(args.result)
     if not result.is_dir():
         raise ValueError(f"{result}: not a folder; give the folder wvr slam wrote (with trajectory.tum)")
     check_complete(result, "SLAM result")
-    seq = open_any(args.seq)            # ours, TUM RGB-D, EuRoC or KITTI, as wvr slam reads it
+    # EuRoC and KITTI as wvr slam reads them; ours (and TUM RGB-D) by the reader that skips and
+    # counts an unreadable depth image instead of refusing the sequence.
+    seq = open_sequence(args.seq) if dataset_kind(args.seq) == "tum" else open_any(args.seq)
     if seq.groundtruth is None:
         raise ValueError(f"{args.seq}: no ground truth to evaluate against (groundtruth.txt; EuRoC's "
                          f"state_groundtruth_estimate0; KITTI's poses/NN.txt)")
