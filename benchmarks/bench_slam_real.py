@@ -102,7 +102,8 @@ def main() -> int:
         pub_s = " / ".join("X" if pub[k] is None else f"{pub[k]:.2f}" for k in ("ORB-SLAM", "PTAM", "LSD-SLAM")) \
             if pub else "-"
         metric = f"{r['ate_metric_cm']:.2f}" if r["scale"] != "arbitrary" else "-"
-        print(f"| {r['name']}{' with its IMU' if imu else ''} | {r['frames']} ({r['before_start']}) | {r['lost']} | {r['scale']} (x{r['sim3_scale']:.3f}) "
+        print(f"| {r['name']}{' with its IMU' if imu else ''} | {r['frames']} ({r['before_start']}) | {r['lost']} "
+              f"| {r['scale']} (x{r['sim3_scale']:.3f}) "
               f"| {r['ate_sim3_cm']:.2f} | {metric} | {r['ms_median']:.1f} / {r['ms_p99']:.1f} / {r['ms_max']:.1f} "
               f"| {r['cpu_ms'][0]:.1f} / {r['cpu_ms'][1]:.1f} / {r['cpu_ms'][2]:.1f} "
               f"| {pub_s} |", flush=True)

@@ -1174,7 +1174,8 @@ def build_parser() -> argparse.ArgumentParser:
     _session_log_option(sl)
     sl.set_defaults(func=cmd_slam)
     ev2 = sub.add_parser("eval", help="ATE and RPE of a SLAM result against the sequence's ground truth")
-    ev2.add_argument("seq", help="the sequence folder wvr slam read (ours, TUM RGB-D, EuRoC mav0, KITTI), with its ground truth")
+    ev2.add_argument("seq", help="the sequence folder wvr slam read (ours, TUM RGB-D, EuRoC mav0, KITTI), with its "
+                     "ground truth")
     ev2.add_argument("result", help="the folder wvr slam wrote (trajectory.tum)")
     ev2.add_argument("--align", choices=["none", "se3", "sim3"], help="the ATE marked * (all three are printed; "
                      "default from the run's scale: none after a target or a saved map, se3 after a depth or IMU "

@@ -73,7 +73,8 @@ def wearer_prompt(head: HeadGeometry, T_world_mount: np.ndarray, p_world, q_curr
     n = int(round(math.pi / turn_step_rad))
     for b0 in range(0, n, _COARSE):
         b1 = min(b0 + _COARSE, n)
-        if not any(_reachable(head, turned_mount(T, sign * b1 * turn_step_rad), p_world, q_current) for sign in (1.0, -1.0)):
+        if not any(_reachable(head, turned_mount(T, sign * b1 * turn_step_rad), p_world, q_current)
+                   for sign in (1.0, -1.0)):
             continue
         for i in range(b0 + 1, b1 + 1):
             for sign in (1.0, -1.0):
