@@ -264,9 +264,12 @@ class Twin:
             self.data.ctrl[:] = ramp[i - 1]
             # The step integrates from the state at k with the wearer where it is at k.
             mujoco.mj_step(self.model, self.data)
-            self.k += 1
-            self._set_wearer(self.step_times[self.k], all_segments=False, index=self.k)
-            self._record_cam(self.k)
+            k = self.k + 1
+            self._set_wearer(self.step_times[k], all_segments=False, index=k)
+            self._record_cam(k)
+            # k advances only once step k's camera is recorded: a scorer reading ground_truth
+            # from another thread (the station's tests) never sees the unwritten (zero) pose.
+            self.k = k
         self._cmd_prev = cmd
         self._set_wearer(self.t, all_segments=True)
         mujoco.mj_forward(self.model, self.data)
