@@ -22,9 +22,8 @@ import numpy as np
 
 from kinematics.camera import save_camera
 from kinematics.outdir import output_folder
-from runtime.sequence import DEPTH_SCALE, Sequence, SequenceError
+from runtime.sequence import Sequence, SequenceError
 
-from .depth import read_depth
 
 NS_PER_S = 10**9
 
@@ -191,10 +190,6 @@ class DatasetSequence(Sequence):
     source : "euroc", "kitti" or "tum" (our layout).
     stamps_ns : (N,) int64, each frame's exact time, ns (``timestamps`` are these in float s).
     groundtruth_ns, imu_ns : (M,) int64 exact times of the ground truth and IMU rows, or None.
-    depth_scale : depth image units per metre (TUM: 5000).
-    depth_max_dt_s : a depth image belongs to the frame whose time is nearest, within this
-        (TUM RGB-D's depth and colour stamps differ by up to ~15 ms; 0.02 s is its associate.py's
-        default).
     notes : what the reader adapted (one line each), for the user to see.
     """
 
@@ -202,25 +197,11 @@ class DatasetSequence(Sequence):
     stamps_ns: np.ndarray | None = None
     groundtruth_ns: np.ndarray | None = None
     imu_ns: np.ndarray | None = None
-    depth_scale: float = DEPTH_SCALE
-    depth_max_dt_s: float = 0.02
     notes: tuple[str, ...] = ()
 
     def ns_at(self, t: float) -> int:
         """The exact ns stamp of the frame nearest ``t`` seconds (the map back from float times)."""
         return int(self.stamps_ns[int(np.argmin(np.abs(self.timestamps - float(t))))])
-
-    def depth(self, index: int) -> np.ndarray | None:
-        """Depth image (H, W) float32 of frame ``index``, metres along the optic axis (NaN where none),
-        or None if no depth image is within depth_max_dt_s of the frame's time; a depth PNG that
-        is 8-bit or of another size than camera.toml's raises SequenceError naming the file."""
-        if self.depth_paths is None:
-            return None
-        t = self.timestamps[index]
-        j = int(np.argmin(np.abs(self.depth_timestamps - t)))
-        if abs(self.depth_timestamps[j] - t) > self.depth_max_dt_s:
-            return None
-        return read_depth(self.depth_paths[j], self.camera, self.depth_scale)
 
 
 def as_dataset_sequence(seq: Sequence, **extra) -> DatasetSequence:

@@ -15,6 +15,7 @@ import numpy as np
 from kinematics.camera import CameraIntrinsics, load_camera
 from kinematics.outdir import OutputFolderError, check_complete
 
+from .depth import depth_scale_of, read_depth
 from .textfiles import _read_lines, load_target, read_imu, read_joints, read_trajectory
 from .types import DEPTH_SCALE, Frame, ImuLog, JointLog, SequenceError, Target, Trajectory
 
@@ -92,6 +93,9 @@ class Sequence:
     timestamps : (N,) float, seconds, strictly increasing, from rgb.txt.
     paths : N image paths (root joined with rgb.txt's relative paths).
     target, groundtruth, imu, joints : the optional files, None when absent.
+    depth_timestamps, depth_paths : depth.txt's, None when absent.
+    depth_scale : depth image units per metre (camera.toml's depth_scale; TUM: 5000).
+    depth_max_dt_s : a depth image belongs to the frame whose time is nearest, within this.
     """
 
     root: Path
@@ -104,6 +108,9 @@ class Sequence:
     joints: JointLog | None = None
     depth_timestamps: np.ndarray | None = None
     depth_paths: list[Path] | None = None
+    depth_scale: float = DEPTH_SCALE
+    # TUM RGB-D's depth and colour stamps differ by up to ~15 ms; 0.02 s is its associate.py's default.
+    depth_max_dt_s: float = 0.02
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -117,20 +124,15 @@ class Sequence:
 
     def depth(self, index: int) -> np.ndarray | None:
         """Depth image (H, W) float32 of frame ``index``, metres along the optic axis (NaN where
-        there is none), or None if the sequence has no depth for that frame's time."""
+        none), or None if no depth image is within ``depth_max_dt_s`` of the frame's time; a depth
+        PNG that is 8-bit or of another size than camera.toml's raises SequenceError naming the file."""
         if self.depth_paths is None:
             return None
         t = self.timestamps[index]
         j = int(np.argmin(np.abs(self.depth_timestamps - t)))
-        if abs(self.depth_timestamps[j] - t) > 1e-6:
+        if abs(self.depth_timestamps[j] - t) > self.depth_max_dt_s:
             return None
-        raw = cv2.imread(str(self.depth_paths[j]), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.dtype != np.uint16:
-            raise SequenceError(f"{self.depth_paths[j]}: not a 16-bit depth PNG; depth images hold metres x "
-                                f"{DEPTH_SCALE:g} as uint16")
-        d = raw.astype(np.float32) / DEPTH_SCALE
-        d[raw == 0] = np.nan
-        return d
+        return read_depth(self.depth_paths[j], self.camera, self.depth_scale)
 
     def frames(self) -> Iterator[Frame]:
         """Every frame in rgb.txt order, loaded one at a time; never raises for bad images."""
@@ -171,7 +173,7 @@ def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
     d_times, d_paths = _read_rgb_list(root / "depth.txt", "depth.txt") if (root / "depth.txt").exists() \
         else (None, None)
     return Sequence(root=root, camera=camera, timestamps=times, paths=paths,
-                    depth_timestamps=d_times, depth_paths=d_paths,
+                    depth_timestamps=d_times, depth_paths=d_paths, depth_scale=depth_scale_of(cam_path),
                     target=optional("target.toml", load_target),
                     groundtruth=optional("groundtruth.txt", read_trajectory),
                     imu=optional("imu.txt", read_imu),

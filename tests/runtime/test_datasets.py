@@ -345,6 +345,13 @@ def test_tum_depth_associated_by_nearest_time(tmp_path):
     raw = np.full((H, W), 10000, np.uint16)
     assert open_any(_tum(tmp_path / "a", raw, "1305031102.187304")).depth(0)[3, 3] == 2.0
     assert open_any(_tum(tmp_path / "b", raw, "1305031102.205304")).depth(0) is None
+    # The plain reader (map scoring, the stabilise bench) associates and scales as open_any does.
+    from runtime.sequence import open_sequence
+
+    assert open_sequence(tmp_path / "a").depth(0)[3, 3] == 2.0 and open_sequence(tmp_path / "b").depth(0) is None
+    cam_toml = tmp_path / "a" / "camera.toml"
+    cam_toml.write_text(cam_toml.read_text().replace("[camera]", "[camera]\ndepth_scale = 1000.0"))
+    assert open_sequence(tmp_path / "a").depth(0)[3, 3] == 10.0 and open_any(tmp_path / "a").depth(0)[3, 3] == 10.0
 
 
 # ------------------------------------------------------------------------------------- bad input

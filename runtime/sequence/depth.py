@@ -8,6 +8,7 @@ naming the file, at open (from the PNG header alone) and on read.
 
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 
@@ -15,7 +16,9 @@ import cv2
 import numpy as np
 
 from kinematics.camera import CameraIntrinsics
-from runtime.sequence import DEPTH_SCALE, SequenceError
+from kinematics.tomlfile import read_toml
+
+from .types import DEPTH_SCALE, SequenceError
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _FIX_16BIT = "depth images are 16-bit PNGs of metres x depth_scale (TUM: 5000); export them as uint16"
@@ -69,3 +72,14 @@ def read_depth(path: str | Path, camera: CameraIntrinsics, depth_scale: float = 
     d = raw.astype(np.float32) / np.float32(depth_scale)
     d[raw == 0] = np.nan
     return d
+
+
+def depth_scale_of(camera_toml: str | Path) -> float:
+    """camera.toml's [camera].depth_scale (depth image units per metre), DEPTH_SCALE (5000) if absent."""
+    path = Path(camera_toml)
+    doc = read_toml(path, SequenceError, "the path of a camera.toml")
+    v = doc.get("camera", {}).get("depth_scale", DEPTH_SCALE) if isinstance(doc.get("camera"), dict) else DEPTH_SCALE
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise SequenceError(f"{path}: [camera].depth_scale = {v!r} must be a positive number (depth image units per "
+                            f"metre; TUM RGB-D: 5000)")
+    return float(v)
