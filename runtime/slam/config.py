@@ -398,7 +398,7 @@ class StartupSettings:
     start_max_rms_px: float = 1.5        # the refined corners must fit one pose this well
     ambiguity_ratio: float = 4.0         # keep the second planar PnP pose if its error is within this
     ambiguity_frames: int = 60           # frames to decide between the two, at most
-    ambiguity_gate_chi2: float = 9.21    # their evidence: a miss or an outlier costs this (chi2, 2 dof, 99%)
+    ambiguity_gate_chi2: float = 9.21    # evidence (the target's points): a miss or outlier costs this (chi2 2 dof 99%)
     init_sigma_v: float = 0.3
     init_sigma_w: float = 0.5
 

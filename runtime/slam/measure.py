@@ -28,6 +28,20 @@ from .views import SlamMap, warped
 _GRID = (4, 3)
 
 
+def start_evidence(d2: np.ndarray, used: np.ndarray, known: np.ndarray, gate: float) -> float:
+    """A frame's log-likelihood for a track's start-up hypothesis (system.MonoSLAM._decide): over
+    the target's known points only, ``-0.5 sum min(d2, gate)``, a point searched but not used (a
+    miss or an outlier) costing the gate. d2, used, known : (n,) each searched feature's prior
+    innovation NIS, whether its match updated the filter, whether it is the target's.
+
+    The known points are the data both hypotheses measure alike. Each track's own natural
+    features were placed from its own pose, so they fit it either way, and their misses (each
+    track's own) differ by chance: counted, one miss more (half the gate, 4.6) outweighed the
+    decisive gap (log 16, 2.8) while nothing yet told the poses apart (a still head)."""
+    d = np.where(np.asarray(used, bool), np.minimum(np.asarray(d2, float), gate), gate)
+    return -0.5 * float(d[np.asarray(known, bool)].sum())
+
+
 class Measurement:
     """One track's measurement. cam, settings : the camera and the map's settings; sigma_pixel :
     a match's standard deviation, px; seed : the RANSAC's random order (per frame); target : the
@@ -216,8 +230,9 @@ class Measurement:
         st.found = int(found.sum())
         m.last = SearchView(np.array([m.features[k].id for k in pred.ks], int), pred.uv.copy(), S.copy(), z,
                             np.zeros(n, bool), pred.ks.copy())
+        known = np.array([m.features[k].known for k in pred.ks.tolist()], bool)
         if not found.any():
-            return True, -(0.5 * s.startup.ambiguity_gate_chi2 * n)
+            return True, start_evidence(np.zeros(n), np.zeros(n, bool), known, s.startup.ambiguity_gate_chi2)
         fi = np.flatnonzero(found)
         sub = pred.take(fi)
         rng = np.random.default_rng((self.seed, frame))
@@ -243,8 +258,6 @@ class Measurement:
         st.matched = res.n_inliers
         st.rescued = int(res.rescued.sum())
         st.outliers = res.n_outliers
-        # Evidence for this track's start-up hypothesis: the prior innovations' Mahalanobis
-        # distances, capped at a gate (a miss or an outlier costs the gate).
         nu = z[fi] - sub.uv
         d2 = innovation_nis(nu, S[fi])
         for k, u, d in zip(ks_found, used, d2.tolist()):
@@ -253,9 +266,9 @@ class Measurement:
                 h.append(d)
                 if len(h) > s.deletion.consistency_window:
                     del h[0]
-        gate = s.startup.ambiguity_gate_chi2
-        d2 = np.where(res.used, np.minimum(d2, gate), gate)
-        return True, -(0.5 * (d2.sum() + gate * (n - len(fi))))
+        d2_all, used_all = np.zeros(n), np.zeros(n, bool)
+        d2_all[fi], used_all[fi] = d2, res.used
+        return True, start_evidence(d2_all, used_all, known, s.startup.ambiguity_gate_chi2)
 
     @staticmethod
     def _grow_impulse(state: State, motion_cfg: SlamConfig, dt: float, gain: float) -> None:

@@ -361,3 +361,25 @@ def test_the_target_is_measured_by_its_sides_every_frame(move):
     by_sides, by_templates = measured(True), measured(False)
     print(f"\nsides {by_sides.max():.3f} px, templates {by_templates.max():.3f} px (worst corner)")
     assert by_sides.max() < 0.02 < by_templates.max()
+
+
+# -- deciding between the two planar poses ----------------------------------------------------
+
+def test_the_start_evidence_counts_the_targets_points_and_no_track_s_own_features():
+    """Two tracks' natural features are each placed from its own pose, and miss by chance: a
+    natural feature's miss or outlier changes nothing; a target point's costs the gate, and a
+    matched one its capped NIS."""
+    from runtime.slam.measure import start_evidence
+
+    gate = SU.ambiguity_gate_chi2
+    d2 = np.array([1.0, 30.0, 0.0, 2.0, 0.5])
+    used = np.array([True, True, False, True, False])
+    known = np.array([True, True, True, False, False])
+    assert start_evidence(d2, used, known, gate) == pytest.approx(-0.5 * (1.0 + gate + gate))
+    # A natural feature's miss (the fourth) or a natural feature's large innovation: the same.
+    assert start_evidence(d2, np.array([True, True, False, False, False]), known, gate) == \
+        start_evidence(d2, used, known, gate)
+    assert start_evidence(np.array([1.0, 30.0, 0.0, 50.0, 0.5]), used, known, gate) == \
+        start_evidence(d2, used, known, gate)
+    # No target point searched: no evidence either way.
+    assert start_evidence(d2, used, np.zeros(5, bool), gate) == 0.0
