@@ -181,6 +181,11 @@ ASK_AFTER_S = 6.0
 #: of the map; the answer is acted on this long after the snapshot.
 ASK_SEARCH_DELAY_S = 1.0
 
+#: Explore's and the glances' choices (a fixation IK per candidate view, about half a second of
+#: CPU) are made beside the loop on a snapshot of the map and acted on this long after it; explore
+#: takes its snapshot this long before its dwell ends, so that it saccades when the dwell does.
+CHOICE_DELAY_S = 0.5
+
 #: How SLAM's map can start in the closed loop.
 STARTS = ("target", "head-motion")
 
@@ -346,8 +351,10 @@ class ClosedLoop:
         self._ask_t = -np.inf               # explore: when the wearer was last asked to turn, s
         self._ask_pending: float | None = None
         self._beyond = DelayedResult("explore-beyond-reach", ASK_SEARCH_DELAY_S, info.clock_waits)
+        self._choice = DelayedResult("gaze-choice", CHOICE_DELAY_S, info.clock_waits)   # explore's or a glance's
         self.glances = GlanceSchedule(GlanceSettings()) if task.glances else None
         self.glance_choice = None           # glances: the last one's ExploreChoice (score: nats along the weak direction)
+        self._glance_sigma = (math.nan, np.zeros(3))    # the weakest direction the glance in flight was chosen for
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -453,17 +460,22 @@ class ClosedLoop:
         return self.slam.T_world_cam() @ np.linalg.inv(forward_kinematics(self.info.head, q).T_mount_cam)
 
     def _explore(self, obs: Observation) -> None:
-        """Explore: choose the next fixation (runtime.apps.explore) from SLAM's map and the head's
-        reach, and saccade to it; the best candidate the controller accepts (a refused one is
-        skipped). Nothing is chosen while SLAM is lost."""
+        """Explore: start choosing the next fixation (runtime.apps.explore) from a snapshot of
+        SLAM's map and the head's reach, beside the loop (:meth:`_explored` acts on it). Nothing
+        is chosen while SLAM is lost or a choice is in flight."""
         slam, t = self.slam, obs.t
-        if slam is None or not slam.localised:
+        if slam is None or not slam.localised or self._choice.busy:
             return
-        self._explore_t = t
+        self._explore_t = t + CHOICE_DELAY_S
         q = np.asarray(obs.q, float)
         T_world_mount = self._T_world_mount(q)
-        ch = choose_fixation(self.info.head, self.info.camera, slam.state, T_world_mount, q, slam.cfg.sigma_pixel,
-                             self.explore_settings, map_points_world=slam.world_points())
+        self._choice.submit(t, choose_fixation, self.info.head, self.info.camera, slam.state.copy(),
+                            T_world_mount.copy(), q.copy(), slam.cfg.sigma_pixel, self.explore_settings,
+                            map_points_world=slam.world_points().copy(), context=("explore", T_world_mount, q))
+
+    def _explored(self, t: float, ch, T_world_mount: np.ndarray, q: np.ndarray) -> None:
+        """Explore's choice is ready: saccade to the best candidate the controller accepts (a
+        refused one is skipped); the wearer's dialogue looks at the same choice."""
         self.explore_choice = ch
         self._dialogue(t, ch, T_world_mount, q)
         self._explore_landed_t = None
@@ -475,6 +487,20 @@ class ClosedLoop:
         self.log.events.append({"t": t, "event": "explore", "target": self._explore_target.tolist(),
                                 "score": float(ch.score[k]), "pose_info": float(ch.pose_info[k]),
                                 "visible": int(ch.n_visible[k]), "index": self._explore_n})
+
+    def _chosen(self, t: float) -> None:
+        """Act on explore's or a glance's choice once it is back (:data:`CHOICE_DELAY_S`), if the
+        loop still does what asked for it (an operator may have taken it elsewhere meanwhile)."""
+        r = self._choice.collect(t)
+        if r is None:
+            return
+        ch, (what, T_world_mount, q) = r
+        if not self.slam.localised:
+            return                  # a saccade needs the pose: explore chooses again after its dwell
+        if what == "explore" and self._kind == "explore":
+            self._explored(t, ch, T_world_mount, q)
+        elif what == "glance" and self.glances is not None and not self.external and not self.glances.away:
+            self._glanced(t, ch)
 
     def _saccade_to_best(self, t: float, ch, floor: float, skip_event: str | None) -> int | None:
         """Saccade to the best of ``ch``'s candidates (an ExploreChoice) that scores at least
@@ -548,9 +574,9 @@ class ClosedLoop:
         # An operator's explore on another task's loop takes explore's own dwell.
         dwell = self.task.dwell_s if self.task.kind == "explore" else EXPLORE_DWELL_S
         if self._explore_target is None:
-            return t - self._explore_t >= dwell
+            return t + CHOICE_DELAY_S - self._explore_t >= dwell
         if self._explore_landed_t is not None:
-            return t - self._explore_landed_t >= dwell
+            return t + CHOICE_DELAY_S - self._explore_landed_t >= dwell
         return t - self._explore_t >= EXPLORE_GIVE_UP_S
 
     def _glance(self, obs: Observation) -> None:
@@ -579,14 +605,25 @@ class ClosedLoop:
         sigma, v = weakest_direction(slam.state.P[0:3, 0:3])
         if not g.due(t, sigma):
             return
+        if self._choice.busy:
+            return
         q = np.asarray(obs.q, float)
         T_world_mount = self._T_world_mount(q)
         # The dwell's frames each measure the view: their information adds, as one update whose
         # pixel noise is the filter's over the frames' count.
         frames = max(1, round(g.settings.dwell_s / self.dt))
-        ch = choose_glance(self.info.head, self.info.camera, slam.state, T_world_mount, q,
-                           slam.cfg.sigma_pixel / math.sqrt(frames), v, g.settings, map_points_world=slam.world_points())
+        self._glance_sigma = (sigma, v)
+        self._choice.submit(t, choose_glance, self.info.head, self.info.camera, slam.state.copy(),
+                            T_world_mount.copy(), q.copy(), slam.cfg.sigma_pixel / math.sqrt(frames), v.copy(),
+                            g.settings, map_points_world=slam.world_points().copy(),
+                            context=("glance", T_world_mount, q))
+
+    def _glanced(self, t: float, ch) -> None:
+        """A glance's choice is ready: saccade out to the best view worth ``min_gain_nats``, or
+        wait ``min_interval_s`` before asking again."""
+        g = self.glances
         self.glance_choice = ch
+        sigma, v = self._glance_sigma
         k = None if ch.best < 0 else self._saccade_to_best(t, ch, g.settings.min_gain_nats, None)
         if k is None:
             g.not_worth(t)
@@ -664,6 +701,8 @@ class ClosedLoop:
                 self._explore(obs)
         elif self._kind == "explore" and i > 1 and self._explore_due(obs.t):
             self._explore(obs)
+        if self._choice.busy:
+            self._chosen(obs.t)
         if self._beyond.busy:
             self._ask(obs.t)
         elif self.glances is not None and not self.external and i > 1 and self._task_t0 is not None:

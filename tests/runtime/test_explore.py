@@ -215,7 +215,7 @@ def test_explore_asks_the_wearer_to_turn_back_to_the_map_and_the_twin_obeys(tmp_
     monkeypatch.setattr(closed_loop, "ASK_AFTER_S", ASK_AFTER_S)
     twin = make_twin()
     try:
-        s = run_on_twin(twin, "turn-away-ask", Task("explore"), tmp_path / "run", seconds=14, seed=1,
+        s = run_on_twin(twin, "turn-away-ask", Task("explore"), tmp_path / "run", seconds=17, seed=1,
                         progress=False, session_log=False)
         turns = list(twin._turns)
     finally:
