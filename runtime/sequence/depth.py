@@ -47,7 +47,7 @@ def check_depth_png(path: str | Path, camera: CameraIntrinsics) -> None:
     w, h, bits, colour = *struct.unpack(">II", head[16:24]), head[24], head[25]
     if bits != 16 or colour != 0:
         kind = f"{bits}-bit" + ("" if colour == 0 else " colour")
-        raise SequenceError(f"{path}: a {kind} PNG, not a 16-bit grey depth image; {_FIX_16BIT}")
+        raise SequenceError(f"{path}: the PNG is {kind}, not a 16-bit grey depth image; {_FIX_16BIT}")
     problem = _size_problem(path, w, h, camera)
     if problem:
         raise SequenceError(problem)
@@ -65,7 +65,7 @@ def read_depth(path: str | Path, camera: CameraIntrinsics, depth_scale: float = 
         raise SequenceError(f"{path}: missing or not a readable image; {_FIX_16BIT}")
     if raw.dtype != np.uint16 or raw.ndim != 2:
         kind = f"{raw.dtype.itemsize * 8}-bit" + ("" if raw.ndim == 2 else f" {raw.shape[2]}-channel")
-        raise SequenceError(f"{path}: a {kind} image, not a 16-bit grey depth image; {_FIX_16BIT}")
+        raise SequenceError(f"{path}: the image is {kind}, not a 16-bit grey depth image; {_FIX_16BIT}")
     problem = _size_problem(path, raw.shape[1], raw.shape[0], camera)
     if problem:
         raise SequenceError(problem)

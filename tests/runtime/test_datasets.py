@@ -436,9 +436,9 @@ def test_poses_not_matching_times(tmp_path, capsys):
 
 def test_depth_8bit_or_wrong_size(tmp_path, capsys):
     root = _tum(tmp_path / "a", np.full((H, W), 50, np.uint8))
-    with pytest.raises(SequenceError, match=r"depth/1\.png: a 8-bit PNG.*uint16"):
+    with pytest.raises(SequenceError, match=r"depth/1\.png: the PNG is 8-bit, not a 16-bit.*uint16"):
         open_any(root)
-    with pytest.raises(SequenceError, match=r"a 8-bit image.*uint16"):
+    with pytest.raises(SequenceError, match=r"the image is 8-bit, not a 16-bit.*uint16"):
         read_depth(root / "depth" / "1.png", open_any(_tum(tmp_path / "b")).camera)
     root = _tum(tmp_path / "c", np.full((H + 2, W), 5000, np.uint16))
     with pytest.raises(SequenceError, match=rf"depth/1\.png: depth image is {W}x{H + 2} but camera.toml says {W}x{H}"):

@@ -260,7 +260,7 @@ def test_eval_skips_and_counts_an_8_bit_depth_image(seq, slam_result, tmp_path, 
     assert r.returncode == 0, r.stderr
     assert "ATE (no alignment)" in r.stdout and "map against the true depth" in r.stdout
     assert r.stderr.count("\n") == 1 and "warning: 1 depth images skipped" in r.stderr
-    assert f"{first.name}: not a 16-bit depth PNG" in r.stderr
+    assert f"{first.name}: the image is 8-bit, not a 16-bit grey depth image" in r.stderr
 
 
 def test_eval_warns_when_the_ground_truth_covers_a_third(tmp_path):
