@@ -129,14 +129,24 @@ def test_bad_settings_are_refused_with_the_fix():
 
 
 @pytest.mark.slow
-def test_explore_on_the_twin_saccades_within_the_limit_and_lands(tmp_path):
+def test_explore_on_the_twin_saccades_within_the_limit_and_lands(tmp_path, monkeypatch):
     import csv
     import json
+    import threading
 
+    from runtime.apps import closed_loop
     from runtime.apps.evaluate import fixation_errors
     from runtime.sequence import read_trajectory
     from wvr.cli import main
 
+    # The choice (about 0.7 s of CPU) is made beside the control loop, never on its thread.
+    threads = []
+
+    def choose(*a, **k):
+        threads.append(threading.current_thread() is threading.main_thread())
+        return choose_fixation(*a, **k)
+
+    monkeypatch.setattr(closed_loop, "choose_fixation", choose)
     out = tmp_path / "run"
     code = main(["sim", "run", "--scenario", "office-far-target", "--task", "explore", "--seconds", "6", "--seed", "1",
                  "--out", str(out), "--no-session-log"])
@@ -145,6 +155,9 @@ def test_explore_on_the_twin_saccades_within_the_limit_and_lands(tmp_path):
     assert s["ended"] == "complete" and s["lost_frames"] == 0
     chosen = [e for e in s["events"] if e["event"] == "explore"]
     assert len(chosen) >= 2 and all(np.isfinite(e["score"]) for e in chosen)
+    assert threads and not any(threads)
+    # Acted on CHOICE_DELAY_S after the snapshot: the first choice waits that long after the start.
+    assert chosen[0]["t"] >= closed_loop.CHOICE_DELAY_S - 1e-9
     assert len({tuple(np.round(e["target"], 3)) for e in chosen}) == len(chosen)     # each a new place
     assert sum(e["event"] == "landed" for e in s["events"]) >= 2
     with open(out / "joints.csv") as fh:
