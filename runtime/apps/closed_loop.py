@@ -354,7 +354,6 @@ class ClosedLoop:
         self._choice = DelayedResult("gaze-choice", CHOICE_DELAY_S, info.clock_waits)   # explore's or a glance's
         self.glances = GlanceSchedule(GlanceSettings()) if task.glances else None
         self.glance_choice = None           # glances: the last one's ExploreChoice (score: nats along the weak direction)
-        self._glance_sigma = (math.nan, np.zeros(3))    # the weakest direction the glance in flight was chosen for
 
     # -- start-up: the first observation
     def start(self, obs: Observation) -> None:
@@ -471,7 +470,7 @@ class ClosedLoop:
         T_world_mount = self._T_world_mount(q)
         self._choice.submit(t, choose_fixation, self.info.head, self.info.camera, slam.state.copy(),
                             T_world_mount.copy(), q.copy(), slam.cfg.sigma_pixel, self.explore_settings,
-                            map_points_world=slam.world_points().copy(), context=("explore", T_world_mount, q))
+                            map_points_world=slam.world_points().copy(), context=("explore", T_world_mount, q, None))
 
     def _explored(self, t: float, ch, T_world_mount: np.ndarray, q: np.ndarray) -> None:
         """Explore's choice is ready: saccade to the best candidate the controller accepts (a
@@ -494,13 +493,13 @@ class ClosedLoop:
         r = self._choice.collect(t)
         if r is None:
             return
-        ch, (what, T_world_mount, q) = r
+        ch, (what, T_world_mount, q, weak) = r
         if not self.slam.localised:
             return                  # a saccade needs the pose: explore chooses again after its dwell
         if what == "explore" and self._kind == "explore":
             self._explored(t, ch, T_world_mount, q)
         elif what == "glance" and self.glances is not None and not self.external and not self.glances.away:
-            self._glanced(t, ch)
+            self._glanced(t, ch, *weak)
 
     def _saccade_to_best(self, t: float, ch, floor: float, skip_event: str | None) -> int | None:
         """Saccade to the best of ``ch``'s candidates (an ExploreChoice) that scores at least
@@ -612,18 +611,17 @@ class ClosedLoop:
         # The dwell's frames each measure the view: their information adds, as one update whose
         # pixel noise is the filter's over the frames' count.
         frames = max(1, round(g.settings.dwell_s / self.dt))
-        self._glance_sigma = (sigma, v)
         self._choice.submit(t, choose_glance, self.info.head, self.info.camera, slam.state.copy(),
                             T_world_mount.copy(), q.copy(), slam.cfg.sigma_pixel / math.sqrt(frames), v.copy(),
                             g.settings, map_points_world=slam.world_points().copy(),
-                            context=("glance", T_world_mount, q))
+                            context=("glance", T_world_mount, q, (sigma, v)))
 
-    def _glanced(self, t: float, ch) -> None:
-        """A glance's choice is ready: saccade out to the best view worth ``min_gain_nats``, or
-        wait ``min_interval_s`` before asking again."""
+    def _glanced(self, t: float, ch, sigma: float, v: np.ndarray) -> None:
+        """A glance's choice (for the weakest direction ``v`` (3,), sigma m, it was chosen for)
+        is ready: saccade out to the best view worth ``min_gain_nats``, or wait
+        ``min_interval_s`` before asking again."""
         g = self.glances
         self.glance_choice = ch
-        sigma, v = self._glance_sigma
         k = None if ch.best < 0 else self._saccade_to_best(t, ch, g.settings.min_gain_nats, None)
         if k is None:
             g.not_worth(t)
