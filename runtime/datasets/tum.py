@@ -6,11 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from runtime.sequence import open_sequence
-from runtime.sequence.depth import check_depth_png, depth_scale_of, read_depth
+from runtime.sequence.depth import check_depth_png, read_depth
 
 from .common import DatasetSequence, as_dataset_sequence, read_stamps_ns
 
-__all__ = ["check_depth_png", "depth_scale_of", "open_tum", "read_depth"]
+__all__ = ["check_depth_png", "open_tum", "read_depth"]
 
 
 def open_tum(path: str | Path) -> DatasetSequence:

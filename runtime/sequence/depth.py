@@ -8,7 +8,6 @@ naming the file, at open (from the PNG header alone) and on read.
 
 from __future__ import annotations
 
-import math
 import struct
 from pathlib import Path
 
@@ -16,7 +15,6 @@ import cv2
 import numpy as np
 
 from kinematics.camera import CameraIntrinsics
-from kinematics.tomlfile import read_toml
 
 from .types import DEPTH_SCALE, SequenceError
 
@@ -72,14 +70,3 @@ def read_depth(path: str | Path, camera: CameraIntrinsics, depth_scale: float = 
     d = raw.astype(np.float32) / np.float32(depth_scale)
     d[raw == 0] = np.nan
     return d
-
-
-def depth_scale_of(camera_toml: str | Path) -> float:
-    """camera.toml's [camera].depth_scale (depth image units per metre), DEPTH_SCALE (5000) if absent."""
-    path = Path(camera_toml)
-    doc = read_toml(path, SequenceError, "the path of a camera.toml")
-    v = doc.get("camera", {}).get("depth_scale", DEPTH_SCALE) if isinstance(doc.get("camera"), dict) else DEPTH_SCALE
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise SequenceError(f"{path}: [camera].depth_scale = {v!r} must be a positive number (depth image units per "
-                            f"metre; TUM RGB-D: 5000)")
-    return float(v)

@@ -12,10 +12,11 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from kinematics.camera import CameraIntrinsics, load_camera
+from kinematics.camera import CameraFileError, CameraIntrinsics
 from kinematics.outdir import OutputFolderError, check_complete
+from kinematics.tomlfile import read_toml
 
-from .depth import depth_scale_of, read_depth
+from .depth import read_depth
 from .textfiles import _read_lines, load_target, read_imu, read_joints, read_trajectory
 from .types import DEPTH_SCALE, Frame, ImuLog, JointLog, SequenceError, Target, Trajectory
 
@@ -163,7 +164,11 @@ def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
     if not cam_path.is_file():
         raise SequenceError(f"{cam_path}: missing; every sequence needs a camera.toml with a [camera] "
                             f"table (width, height, fx, fy, cx, cy; {_SEQUENCE_FILES})")
-    camera = load_camera(cam_path)
+    # One read: the lens for the camera, and the depth images' units per metre (the camera's
+    # reader has checked depth_scale, and leaves it out of the lens).
+    doc = read_toml(cam_path, CameraFileError, "the path of a camera.toml")
+    camera = CameraIntrinsics.from_dict(doc, source=str(cam_path))
+    depth_scale = float(doc["camera"].get("depth_scale", DEPTH_SCALE))
     times, paths = _read_rgb_list(root / "rgb.txt")
 
     def optional(name, reader):
@@ -173,7 +178,7 @@ def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
     d_times, d_paths = _read_rgb_list(root / "depth.txt", "depth.txt") if (root / "depth.txt").exists() \
         else (None, None)
     return Sequence(root=root, camera=camera, timestamps=times, paths=paths,
-                    depth_timestamps=d_times, depth_paths=d_paths, depth_scale=depth_scale_of(cam_path),
+                    depth_timestamps=d_times, depth_paths=d_paths, depth_scale=depth_scale,
                     target=optional("target.toml", load_target),
                     groundtruth=optional("groundtruth.txt", read_trajectory),
                     imu=optional("imu.txt", read_imu),
