@@ -3,13 +3,15 @@
 * :func:`agemoea2` : pymoo's AGE-MOEA2 (the default): survival by an estimate of the front's
   geometry (its Lp norm) and of each design's proximity and diversity on it; no reference
   directions, so a small population (28) works for seven objectives.
+* :func:`surrogate_agemoea2` : AGE-MOEA2 whose offspring are pre-screened by a model of the
+  criteria and constraints fitted on every design evaluated so far (:class:`ScreenedAGEMOEA2`).
 * :func:`nsga3` : pymoo's NSGA-III with Das-Dennis reference directions. NSGA-II's crowding
   distance loses selection pressure beyond three objectives; reference directions keep the
   front spread over all seven.
 * :class:`RandomVariation` : the paper's own method as the baseline: random variations of the
   3D coordinates of camera and motors, and a Pareto test of non-dominance to keep the best.
 
-Both are deterministic for a seed and picklable mid-run (their random generators included).
+All are deterministic for a seed and picklable mid-run (their random generators included).
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ import numpy as np
 from pymoo.algorithms.moo.age2 import AGEMOEA2
 from pymoo.algorithms.moo.nsga3 import NSGA3
 from pymoo.core.evaluator import Evaluator
+from pymoo.core.population import Population
 from pymoo.core.problem import Problem
 from pymoo.operators.sampling.lhs import LHS
 from pymoo.problems.static import StaticProblem
 from pymoo.util.ref_dirs import get_reference_directions
+from scipy.interpolate import RBFInterpolator
 
 from .pareto import non_dominated
 
@@ -98,6 +102,106 @@ def agemoea2(problem: Problem, seed: int, pop_size: int = AGEMOEA2_POPULATION) -
     """AGE-MOEA2 over the problem (pymoo's default constraint handling: feasible designs first,
     then the least violation), started from a Latin hypercube over the bounds."""
     return PymooAskTell(AGEMOEA2(pop_size=pop_size, sampling=LHS()), problem, seed)
+
+
+class ScreenedAGEMOEA2(AGEMOEA2):
+    """AGE-MOEA2 with a surrogate pre-screen of its offspring (Emmerich-style pre-screening).
+
+    The objective is unchanged: the problem's criteria (minimised) under its constraints, and
+    survival is AGE-MOEA2's on the true values. Only which offspring get evaluated changes:
+
+    * proposals: each generation the mating (tournament, SBX, polynomial mutation) makes
+      ``screen`` x ``n_offsprings`` candidates from the population;
+    * model: scipy's ``RBFInterpolator``, thin-plate spline with a linear tail, local over the
+      ``neighbors`` nearest evaluated designs, on the variables scaled to [0, 1] by the bounds,
+      fitted to every design evaluated so far (criteria and constraints, one model);
+    * selection: the first ``explore`` share of the batch is the mating's first candidates,
+      unscreened (so the search is never confined to where the model is right); the rest are
+      picked one by one, predicted-feasible candidates first (else the least predicted
+      violation), by the largest predicted additive-epsilon gain over the feasible front of
+      every evaluation so far (criteria scaled to that front's range); each pick's prediction
+      joins that front, so the next pick must improve on it too, which keeps the batch spread.
+
+    Until ``min_train`` designs are evaluated (the Latin hypercube start and the first
+    generation), offspring are AGE-MOEA2's own. Every step is a function of the seed and of what
+    was told, so a resume replays it exactly.
+    """
+
+    def __init__(self, *, screen: int = 10, explore: float = 0.25, neighbors: int = 64, min_train: int = 37,
+                 **kwargs):
+        super().__init__(**kwargs)
+        self.screen, self.explore, self.neighbors, self.min_train = int(screen), float(explore), int(neighbors), int(min_train)
+        self._X = self._F = self._G = None     # every evaluation told: (n, n_var), (n, n_obj), (n, n_constr)
+
+    def _remember(self, infills) -> None:
+        if infills is None or len(infills) == 0:
+            return
+        X, F, G = infills.get("X"), infills.get("F"), infills.get("G")
+        if self._X is None:
+            self._X, self._F, self._G = X, F, G
+        else:
+            self._X, self._F, self._G = np.vstack([self._X, X]), np.vstack([self._F, F]), np.vstack([self._G, G])
+
+    def _initialize_advance(self, infills=None, **kwargs):
+        self._remember(infills)
+        super()._initialize_advance(infills=infills, **kwargs)
+
+    def _advance(self, infills=None, **kwargs):
+        self._remember(infills)
+        return super()._advance(infills=infills, **kwargs)
+
+    def _infill(self):
+        n = self.n_offsprings
+        if self._X is None or len(self._X) < self.min_train or self.screen <= 1:
+            return super()._infill()
+        off = self.mating.do(self.problem, self.pop, self.screen * n, algorithm=self, random_state=self.random_state)
+        X = off.get("X")
+        n_keep = min(int(round(self.explore * n)), len(X))
+        picked = np.concatenate([np.arange(n_keep), n_keep + self.select(X[n_keep:], n - n_keep)]).astype(int)
+        return Population.new(X=X[picked])
+
+    def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted (F (m, n_obj), G (m, n_constr)) of designs X (m, n_var) from every design told."""
+        xl, xu = self.problem.xl, self.problem.xu
+        model = RBFInterpolator((self._X - xl) / (xu - xl), np.hstack([self._F, self._G]),
+                                neighbors=min(self.neighbors, len(self._X)), kernel="thin_plate_spline",
+                                smoothing=1e-8)
+        P = model((X - xl) / (xu - xl))
+        return P[:, : self.problem.n_obj], P[:, self.problem.n_obj:]
+
+    def select(self, X: np.ndarray, k: int) -> np.ndarray:
+        """Indices of the ``k`` candidates of X (m, n_var) to evaluate, in the order picked."""
+        k = min(k, len(X))
+        try:
+            F, G = self.predict(X)
+        except np.linalg.LinAlgError:    # a degenerate neighbourhood: take the proposals as they come
+            return np.arange(k)
+        cv = np.maximum(G, 0).sum(axis=1)
+        feasible = np.all(self._G <= 0, axis=1)
+        front = self._F[non_dominated(self._F, feasible)] if feasible.any() else self._F
+        lo, hi = front.min(axis=0), front.max(axis=0)
+        span = np.where(hi > lo, hi - lo, 1.0)
+        Fn, An = (F - lo) / span, (front - lo) / span
+        # gain[c] = min over front points p of max_i (p_i - c_i): > 0 iff no p weakly dominates c
+        gain = np.full(len(X), np.inf)
+        for s in range(0, len(An), 64):     # in blocks: (64, m, n_obj) at a time
+            gain = np.minimum(gain, (An[s:s + 64, None, :] - Fn[None, :, :]).max(axis=2).min(axis=0))
+        free = np.ones(len(X), bool)
+        picked = []
+        for _ in range(k):
+            ok = free & (cv <= 0)
+            i = int(np.flatnonzero(ok)[np.argmax(gain[ok])]) if ok.any() else int(np.flatnonzero(free)[np.argmin(cv[free])])
+            picked.append(i)
+            free[i] = False
+            gain = np.minimum(gain, (Fn[i] - Fn).max(axis=1))
+        return np.array(picked, dtype=int)
+
+
+def surrogate_agemoea2(problem: Problem, seed: int, pop_size: int = AGEMOEA2_POPULATION,
+                       **screen) -> PymooAskTell:
+    """:class:`ScreenedAGEMOEA2` over the problem (population 28, Latin hypercube start; ``screen``:
+    its keyword arguments). docs/design-sweeps.md, Convergence, fifth round."""
+    return PymooAskTell(ScreenedAGEMOEA2(pop_size=pop_size, sampling=LHS(), **screen), problem, seed)
 
 
 def nsga3(problem: Problem, seed: int, partitions: int) -> PymooAskTell:

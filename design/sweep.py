@@ -32,7 +32,7 @@ from kinematics.progress import progress_bar
 from kinematics.outdir import output_folder
 
 from .problem import EvaluationContext, HeadLayoutProblem, evaluate_batch
-from .search import RandomVariation, agemoea2, nsga3
+from .search import RandomVariation, agemoea2, nsga3, surrogate_agemoea2
 from .sweep_file import ALGORITHMS, CONSTRAINTS, CRITERIA, VARIABLES, SweepSpec, dump_spec
 
 #: The kind (kinematics.outdir) of a sweep's folder; it continues its own (--resume).
@@ -109,6 +109,8 @@ def make_algorithm(name: str, ctx: EvaluationContext, seed: int):
     spec = ctx.spec
     if name == "agemoea2":
         return agemoea2(HeadLayoutProblem(ctx), seed)
+    if name == "surrogate":
+        return surrogate_agemoea2(HeadLayoutProblem(ctx), seed)
     if name == "nsga3":
         return nsga3(HeadLayoutProblem(ctx), seed, spec.partitions)
     if name == "random":
