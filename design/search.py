@@ -1,9 +1,9 @@
 """Search algorithms behind one ask/tell interface, so the runner can checkpoint any of them.
 
-* :func:`agemoea2` : pymoo's AGE-MOEA2 (the default): survival by an estimate of the front's
+* :func:`agemoea2` : pymoo's AGE-MOEA2: survival by an estimate of the front's
   geometry (its Lp norm) and of each design's proximity and diversity on it; no reference
   directions, so a small population (28) works for seven objectives.
-* :func:`surrogate_agemoea2` : AGE-MOEA2 whose offspring are pre-screened by a model of the
+* :func:`surrogate_agemoea2` (the default) : AGE-MOEA2 whose offspring are pre-screened by a model of the
   criteria and constraints fitted on every design evaluated so far (:class:`ScreenedAGEMOEA2`).
 * :func:`nsga3` : pymoo's NSGA-III with Das-Dennis reference directions. NSGA-II's crowding
   distance loses selection pressure beyond three objectives; reference directions keep the

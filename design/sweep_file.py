@@ -30,9 +30,9 @@ POSITIONS = ("elevation_motor", "pan_motor", "cyclotorsion_motor", "camera")
 VARIABLES = tuple(f"{p}_{c}_m" for p in POSITIONS for c in "xyz")
 
 
-#: The search algorithms (design.search): AGE-MOEA2 is the default, "surrogate" AGE-MOEA2 with
-#: its offspring pre-screened by a model, NSGA-III the former default, random variation the
-#: paper's method and the baseline of design.convergence.
+#: The search algorithms (design.search): "surrogate" (the default) is AGE-MOEA2 with its
+#: offspring pre-screened by a model, "agemoea2" AGE-MOEA2 alone, NSGA-III an earlier default,
+#: random variation the paper's method and the baseline of design.convergence.
 ALGORITHMS = ("agemoea2", "surrogate", "nsga3", "random")
 
 

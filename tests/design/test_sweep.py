@@ -123,9 +123,8 @@ def test_sigkill_then_resume_loses_and_repeats_nothing(tmp_path):
         sorted(strip(ref_rows), key=lambda d: (int(d["batch"]), int(d["index"])))
 
 
-def test_default_algorithm_resumed_in_a_later_batch_equals_one_run(tmp_path):
-    spec = tiny_spec(40)
-    assert spec.algorithm == "agemoea2"
+def test_agemoea2_resumed_in_a_later_batch_equals_one_run(tmp_path):
+    spec = replace(tiny_spec(40), algorithm="agemoea2")
     run_sweep(spec, tmp_path / "full", progress=False)
     run_sweep(spec, tmp_path / "cut", evaluations=30, progress=False)       # stops 2 designs into batch 1
     run_sweep(spec, tmp_path / "cut", resume=True, progress=False)
@@ -138,7 +137,8 @@ def test_default_algorithm_resumed_in_a_later_batch_equals_one_run(tmp_path):
 def test_surrogate_resumed_mid_screened_batch_equals_one_run(tmp_path):
     # Batches 0 and 1 are AGE-MOEA2's own (too few designs for the model); batch 2 is screened,
     # so the cut falls where the replay must refit the model on the logged values bit for bit.
-    spec = replace(tiny_spec(84), algorithm="surrogate")
+    spec = tiny_spec(84)
+    assert spec.algorithm == "surrogate"     # the default sweep's
     run_sweep(spec, tmp_path / "full", progress=False)
     run_sweep(spec, tmp_path / "cut", evaluations=70, progress=False)
     r = run_sweep(spec, tmp_path / "cut", resume=True, progress=False)
