@@ -8,7 +8,7 @@
 3. With BENCH_DESIGN_CONVERGENCE=DIR: the convergence fraction per seed (design.convergence;
    the same number as ``wvr design compare``) of DIR/<algorithm>_<seed> against
    DIR/random_<seed>, for the seeds and algorithm given by BENCH_DESIGN_SEEDS (default 0-4) and
-   BENCH_DESIGN_ALGORITHM (default: the default sweep's, agemoea2); missing runs are made (2520 evaluations each).
+   BENCH_DESIGN_ALGORITHM (default: the default sweep's, surrogate); missing runs are made (2520 evaluations each).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_design.py`` from the repository root.
 """

@@ -983,6 +983,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="joint angles in degrees (repeatable)")
     pic.set_defaults(func=cmd_kinematics_picture)
 
+    from design.sweep_file import ALGORITHMS as design_algorithms
     des = sub.add_parser("design", help="Pareto optimisation of the head's layout (7 criteria)")
     dsub = des.add_subparsers(dest="design_command", metavar="SUBCOMMAND", required=True)
     opt = dsub.add_parser("optimise", help="run (or resume) a design sweep; writes the front and chosen_head.toml")
@@ -990,7 +991,7 @@ def build_parser() -> argparse.ArgumentParser:
     opt.add_argument("--out", required=True, help="output directory")
     opt.add_argument("--evaluations", type=_positive_int, help="evaluation budget (default: the sweep file's)")
     opt.add_argument("--seed", type=_design_seed, help="random seed, 0 or more (default: the sweep file's)")
-    opt.add_argument("--algorithm", choices=["agemoea2", "surrogate", "nsga3", "random"], help="default: the sweep file's")
+    opt.add_argument("--algorithm", choices=design_algorithms, help="default: the sweep file's")
     group = opt.add_mutually_exclusive_group()
     group.add_argument("--workers", type=_positive_int, help="evaluate on a local Dask cluster of N worker processes")
     group.add_argument("--scheduler", help="evaluate on an existing Dask cluster, e.g. tcp://HOST:8786")
