@@ -125,13 +125,22 @@ class ScreenedAGEMOEA2(AGEMOEA2):
     Until ``min_train`` designs are evaluated (the Latin hypercube start and the first
     generation), offspring are AGE-MOEA2's own. Every step is a function of the seed and of what
     was told, so a resume replays it exactly.
+
+    The model is fitted on the last ``max_train`` designs told and the front is kept as an
+    archive (the non-dominated set of the union is that of the old front and the new designs),
+    so a generation's cost stays bounded on a sweep of 100,000 evaluations; a 2520-evaluation
+    sweep reaches its target long before ``max_train`` matters.
     """
 
     def __init__(self, *, screen: int = 10, explore: float = 0.25, neighbors: int = 64, min_train: int = 37,
-                 **kwargs):
+                 max_train: int = 2048, **kwargs):
         super().__init__(**kwargs)
         self.screen, self.explore, self.neighbors, self.min_train = int(screen), float(explore), int(neighbors), int(min_train)
-        self._X = self._F = self._G = None     # every evaluation told: (n, n_var), (n, n_obj), (n, n_constr)
+        self.max_train = int(max_train)
+        self._X = self._F = self._G = None     # the last max_train designs told: (n, n_var), (n, n_obj), (n, n_constr)
+        self._told = 0                         # designs told in all
+        self._front = np.empty((0, 0))         # the feasible non-dominated criteria so far (k, n_obj)
+        self._any_feasible = False
 
     def _remember(self, infills) -> None:
         if infills is None or len(infills) == 0:
@@ -140,7 +149,18 @@ class ScreenedAGEMOEA2(AGEMOEA2):
         if self._X is None:
             self._X, self._F, self._G = X, F, G
         else:
-            self._X, self._F, self._G = np.vstack([self._X, X]), np.vstack([self._F, F]), np.vstack([self._G, G])
+            keep = max(0, len(self._X) + len(X) - self.max_train)
+            self._X, self._F, self._G = (np.vstack([A[keep:], B]) for A, B in ((self._X, X), (self._F, F), (self._G, G)))
+        self._told += len(X)
+        feasible = np.all(G <= 0, axis=1)
+        if feasible.any():
+            cand = np.vstack([self._front, F[feasible]]) if self._any_feasible else F[feasible]
+            self._front, self._any_feasible = cand[non_dominated(cand)], True
+
+    def front(self) -> np.ndarray:
+        """The criteria (k, n_obj) the candidates must improve on: the feasible non-dominated
+        designs told so far, or, while none is feasible, the designs the model is fitted on."""
+        return self._front if self._any_feasible else self._F
 
     def _initialize_advance(self, infills=None, **kwargs):
         self._remember(infills)
@@ -161,7 +181,8 @@ class ScreenedAGEMOEA2(AGEMOEA2):
         return Population.new(X=X[picked])
 
     def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted (F (m, n_obj), G (m, n_constr)) of designs X (m, n_var) from every design told."""
+        """Predicted (F (m, n_obj), G (m, n_constr)) of designs X (m, n_var) from the last
+        ``max_train`` designs told."""
         xl, xu = self.problem.xl, self.problem.xu
         model = RBFInterpolator((self._X - xl) / (xu - xl), np.hstack([self._F, self._G]),
                                 neighbors=min(self.neighbors, len(self._X)), kernel="thin_plate_spline",
@@ -177,8 +198,7 @@ class ScreenedAGEMOEA2(AGEMOEA2):
         except np.linalg.LinAlgError:    # a degenerate neighbourhood: take the proposals as they come
             return np.arange(k)
         cv = np.maximum(G, 0).sum(axis=1)
-        feasible = np.all(self._G <= 0, axis=1)
-        front = self._F[non_dominated(self._F, feasible)] if feasible.any() else self._F
+        front = self.front()
         lo, hi = front.min(axis=0), front.max(axis=0)
         span = np.where(hi > lo, hi - lo, 1.0)
         Fn, An = (F - lo) / span, (front - lo) / span
