@@ -219,7 +219,8 @@ class MapManager:
             return prior
         used = set(sv.ids[sv.used].tolist())         # by id: _delete may have renumbered the map
         ks = [k for k, f in enumerate(m.features) if f.id in used]
-        return inverse_depth.scene_prior(m.world_points()[ks], m.state.r, *prior, spread=idp.scene_depth_spread)
+        return inverse_depth.scene_prior(m.world_points()[ks], m.state.r, *prior, spread=idp.scene_depth_spread,
+                                         relative_width=idp.scene_relative_width)
 
     def normals_from_views(self, g: np.ndarray, m: SlamMap) -> None:
         """The plane normals of features matched this frame whose view has turned far enough

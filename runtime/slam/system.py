@@ -300,6 +300,12 @@ class MonoSLAM:
         if len(feats) < 3:
             raise SlamStartError("the natural start's points have no usable appearance (a blank view)")
         self.refined_target = None
+        if ns.scale == "arbitrary":
+            # Two views' points hold the map's scale loosely, and a new feature's prior narrower
+            # than the depths it may have (far nearer than any it matches) drags that scale.
+            idp = self.settings.inverse_depth
+            self.settings = replace(self.settings, inverse_depth=replace(
+                idp, scene_relative_width=idp.two_view_relative_width))
         self._tracks = [self._new_track(state, feats)]
         self.scale_source = ns.scale
         self.ids.next_id = len(feats)

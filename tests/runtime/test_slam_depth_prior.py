@@ -69,13 +69,16 @@ def rho_and_sigma(slam, k) -> tuple[float, float]:
 
 def test_new_features_start_at_the_median_depth_of_the_frames_matches():
     """Five used points at 1.5-6 m (median 3 m) and the unused ones at 20 m: the new features'
-    inverse depth is 1/3 with the configured relative width (sigma_rho / rho0 = 0.5), not the
-    configured 1 m; the deletion before the addition renumbers the map, and the used points are
-    still the ones read. With the scene's spread (the default), the width is half the 16th-84th
-    percentile range of their inverse depths (1/6, 0.2, 1/3, 0.5, 2/3: 0.188 to 0.56), 0.186,
-    wider than the relative width's 1/6."""
-    for spread, width in ((False, 1 / 6), (True, 0.186)):
-        slam, img, natural = tracker_with_points(MapSettings(use_imu=False, scene_depth_spread=spread))
+    inverse depth is 1/3, not the configured 1 m; the deletion before the addition renumbers the
+    map, and the used points are still the ones read. With the relative width 0.5 (a target's
+    map) the width is 1/6, or with the scene's spread half the 16th-84th percentile range of
+    their inverse depths (1/6, 0.2, 1/3, 0.5, 2/3: 0.188 to 0.56), 0.186, which is wider; with a
+    two-view start's relative width (2) it is 2/3, wider than either."""
+    for spread, relative, width in ((False, None, 1 / 6), (True, None, 0.186), (True, 2.0, 2 / 3)):
+        settings = MapSettings(use_imu=False, scene_depth_spread=spread)
+        if relative is not None:
+            settings = replace(settings, inverse_depth=replace(settings.inverse_depth, scene_relative_width=relative))
+        slam, img, natural = tracker_with_points(settings)
         used, unused = natural[1:6], [natural[0]] + natural[6:]
         place(slam, used, [1.5, 2.0, 3.0, 5.0, 6.0])
         place(slam, unused, [20.0] * len(unused))

@@ -203,6 +203,9 @@ def test_scene_prior_is_the_median_inverse_depth_seen_from_the_camera():
     shallow = r + dirs * np.linspace(2.0, 2.2, 6)[:, None]
     rho, sigma = inverse_depth.scene_prior(shallow, r, 1.0, 0.5)
     assert sigma == pytest.approx(0.5 * rho) and rho == pytest.approx(1 / 2.1, rel=1e-3)
+    # A relative width of its own (the map's: a new feature may be nearer than any matched one).
+    assert inverse_depth.scene_prior(Y, r, 1.0, 0.5, spread=False, relative_width=2.0) == pytest.approx((0.375, 0.75))
+    assert inverse_depth.scene_prior(Y, r, 1.0, 0.5, relative_width=2.0) == pytest.approx((0.375, 0.75))
     few = Y[:5].copy()
     few[0] = np.nan
     assert inverse_depth.scene_prior(few, r, 1.0, 0.5) == (1.0, 0.5)

@@ -120,3 +120,26 @@ def test_the_start_warms_a_copy_of_the_track_and_changes_nothing(walk, tmp_path,
     run_slam(copies["depth"], tmp_path / "cold", settings=CAMERA_ONLY, progress=False, max_frames=20)
     for name in ("trajectory.tum", "map.csv"):
         assert (tmp_path / "warm" / name).read_bytes() == (tmp_path / "cold" / name).read_bytes(), name
+
+
+def test_a_two_view_start_widens_new_features_depth_prior_and_a_depth_start_does_not(walk, tmp_path, monkeypatch):
+    """A two-view start's points hold the map's scale loosely: its tracks give new features the
+    relative width ``two_view_relative_width``; a depth start (its scale held by the depth)
+    keeps ``scene_relative_width``."""
+    from runtime.slam.track import Track
+
+    widths = []
+    init = Track.__init__
+
+    def spy(self, *a, **k):
+        init(self, *a, **k)
+        widths.append(self.mapping.settings.inverse_depth.scene_relative_width)
+
+    monkeypatch.setattr(Track, "__init__", spy)
+    idp = CAMERA_ONLY.inverse_depth
+    assert idp.two_view_relative_width > idp.scene_relative_width
+    _, copies = walk
+    for name, want in (("two_view", idp.two_view_relative_width), ("depth", idp.scene_relative_width)):
+        widths.clear()
+        run_slam(copies[name], tmp_path / name, settings=CAMERA_ONLY, progress=False, max_frames=12)
+        assert widths and set(widths) == {want}, (name, widths)

@@ -156,28 +156,31 @@ def linearity_index(y, anchor, sigma_rho: float, r_cam) -> float:
     return 4.0 * (sigma_rho / rho**2) * abs(cos_a) / max(d1, 1e-12)
 
 
-def scene_prior(Y, r_cam, rho0: float, sigma_rho: float, min_points: int = 5, spread: bool = True
-                ) -> tuple[float, float]:
+def scene_prior(Y, r_cam, rho0: float, sigma_rho: float, min_points: int = 5, spread: bool = True,
+                relative_width: float | None = None) -> tuple[float, float]:
     """A new feature's inverse-depth prior (mean, standard deviation), 1/m, from the points ``Y``
     (k, 3) (world, m) just matched from the camera centre ``r_cam`` (3,): the median of their
-    inverse distances, with the configured prior's relative width ``sigma_rho / rho0`` (so its
-    95% interval still reaches infinity) or, with ``spread``, the points' own spread of inverse
-    distances (half their 16th-84th percentile range) where that is wider. With fewer than
-    ``min_points`` finite points, the configured ``(rho0, sigma_rho)``.
+    inverse distances, with the relative width ``relative_width`` (default the configured prior's
+    ``sigma_rho / rho0``) or, with ``spread``, the points' own spread of inverse distances (half
+    their 16th-84th percentile range) where that is wider. With fewer than ``min_points`` finite
+    points, the configured ``(rho0, sigma_rho)``.
 
     A fixed mean pulls a monocular map's scale towards its depth: features start at it, and
     until their parallax outweighs it the camera's translation is read at that depth's scale.
     Centred on the depths the map already holds, a new feature agrees with the map's scale and
     pulls it nowhere. In a deep scene (a hall seen past a near pallet, a road) a new feature may
     lie anywhere in the scene's depths, and a prior narrower than they are pulls the scale as a
-    wrong mean would (benchmarks/NOTES.md: MH_01's first second ran at half the later scale)."""
+    wrong mean would (benchmarks/NOTES.md: MH_01's first second ran at half the later scale).
+    The width must also reach what the matched points do not show: a new feature goes where no
+    feature is, and may be much nearer than any (a pallet the camera approaches): with a
+    relative width w the 95% interval reaches depths down to 1 / (1 + 2w) of the median."""
     Y = np.asarray(Y, float).reshape(-1, 3)
     d = np.linalg.norm(Y - np.asarray(r_cam, float), axis=1)
     rho = 1.0 / d[np.isfinite(d) & (d > 0)]
     if len(rho) < min_points:
         return float(rho0), float(sigma_rho)
     lo, mean, hi = (float(v) for v in np.percentile(rho, [16, 50, 84]))
-    sigma = mean * float(sigma_rho) / float(rho0)
+    sigma = mean * (float(sigma_rho) / float(rho0) if relative_width is None else float(relative_width))
     return mean, max(sigma, 0.5 * (hi - lo)) if spread else sigma
 
 
