@@ -102,8 +102,13 @@ def main() -> int:
         sim3 = np.array([r["sim3_cm"] for r in ok])
         se3 = np.array([r["se3_cm"] for r in ok])
         if kind == "imu":
-            err = np.array([abs(r.get("scale_3s_err_pct", np.nan)) for r in ok])
-            scale = f"first 3 s: {np.nanmedian(err):.1f} / {np.nanmax(err):.1f}"
+            # Only runs whose scale the IMU gave: a run left arbitrary (too little acceleration to
+            # estimate it, and said) has no scale error to report.
+            took = [r for r in ok if r["scale"] == "imu"]
+            err = np.array([abs(r.get("scale_3s_err_pct", np.nan)) for r in took])
+            scale = (f"first 3 s: {np.nanmedian(err):.1f} / {np.nanmax(err):.1f} ({len(took)} of {len(ok)} took the "
+                     f"IMU's scale)" if len(took) and np.isfinite(err).any() else
+                     f"the IMU's scale taken by {len(took)} of {len(ok)} (too little acceleration)")
         elif kind == "depth":
             err = np.array([100 * abs(r["factor"] - 1) for r in ok])
             scale = f"{np.median(err):.2f} / {err.max():.2f}"
