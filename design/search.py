@@ -135,12 +135,11 @@ class ScreenedAGEMOEA2(AGEMOEA2):
     def __init__(self, *, screen: int = 10, explore: float = 0.25, neighbors: int = 64, min_train: int = 37,
                  max_train: int = 2048, **kwargs):
         super().__init__(**kwargs)
-        self.screen, self.explore, self.neighbors, self.min_train = int(screen), float(explore), int(neighbors), int(min_train)
+        self.screen, self.explore = int(screen), float(explore)
+        self.neighbors, self.min_train = int(neighbors), int(min_train)
         self.max_train = int(max_train)
         self._X = self._F = self._G = None     # the last max_train designs told: (n, n_var), (n, n_obj), (n, n_constr)
-        self._told = 0                         # designs told in all
-        self._front = np.empty((0, 0))         # the feasible non-dominated criteria so far (k, n_obj)
-        self._any_feasible = False
+        self._front = None                     # the feasible non-dominated criteria so far (k, n_obj)
 
     def _remember(self, infills) -> None:
         if infills is None or len(infills) == 0:
@@ -150,17 +149,17 @@ class ScreenedAGEMOEA2(AGEMOEA2):
             self._X, self._F, self._G = X, F, G
         else:
             keep = max(0, len(self._X) + len(X) - self.max_train)
-            self._X, self._F, self._G = (np.vstack([A[keep:], B]) for A, B in ((self._X, X), (self._F, F), (self._G, G)))
-        self._told += len(X)
+            self._X, self._F, self._G = (np.vstack([A[keep:], B])
+                                         for A, B in ((self._X, X), (self._F, F), (self._G, G)))
         feasible = np.all(G <= 0, axis=1)
         if feasible.any():
-            cand = np.vstack([self._front, F[feasible]]) if self._any_feasible else F[feasible]
-            self._front, self._any_feasible = cand[non_dominated(cand)], True
+            cand = F[feasible] if self._front is None else np.vstack([self._front, F[feasible]])
+            self._front = cand[non_dominated(cand)]
 
     def front(self) -> np.ndarray:
         """The criteria (k, n_obj) the candidates must improve on: the feasible non-dominated
         designs told so far, or, while none is feasible, the designs the model is fitted on."""
-        return self._front if self._any_feasible else self._F
+        return self._F if self._front is None else self._front
 
     def _initialize_advance(self, infills=None, **kwargs):
         self._remember(infills)
@@ -210,7 +209,10 @@ class ScreenedAGEMOEA2(AGEMOEA2):
         picked = []
         for _ in range(k):
             ok = free & (cv <= 0)
-            i = int(np.flatnonzero(ok)[np.argmax(gain[ok])]) if ok.any() else int(np.flatnonzero(free)[np.argmin(cv[free])])
+            if ok.any():
+                i = int(np.flatnonzero(ok)[np.argmax(gain[ok])])
+            else:                           # none predicted feasible: the least predicted violation
+                i = int(np.flatnonzero(free)[np.argmin(cv[free])])
             picked.append(i)
             free[i] = False
             gain = np.minimum(gain, (Fn[i] - Fn).max(axis=1))

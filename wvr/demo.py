@@ -49,7 +49,8 @@ def demo_sweep():
 
 
 #: How the report names the sweeps' searches (design.sweep_file.ALGORITHMS).
-ALGORITHM_NAMES = {"agemoea2": "AGE-MOEA2", "surrogate": "AGE-MOEA2 with a surrogate pre-screen", "nsga3": "NSGA-III", "random": "Random variation"}
+ALGORITHM_NAMES = {"agemoea2": "AGE-MOEA2", "surrogate": "AGE-MOEA2 with a surrogate pre-screen", "nsga3": "NSGA-III",
+                   "random": "Random variation"}
 
 
 def stage_design(out: Path, context: dict) -> str:

@@ -287,8 +287,8 @@ class InverseDepthSettings:
     sigma_rho: float = 0.5               # so rho0 +- 2 sigma spans 0.5 m to infinity
     scene_depth_prior: bool = True       # rho0: the median of the frame's matches (inverse_depth.scene_prior)
     scene_depth_spread: bool = True      # sigma_rho at least the spread of their inverse depths (a deep scene)
-    scene_relative_width: float = 0.5    # sigma_rho / rho0 about that median where a target, a map or depth holds the scale
-    two_view_relative_width: float = 2.0  # after a two-view start, whose points hold the scale loosely: 95% down to a fifth
+    scene_relative_width: float = 0.5    # sigma_rho / rho0 about that median (a target, map or depth holds the scale)
+    two_view_relative_width: float = 2.0  # the same after a two-view start (scale held loosely): 95% down to a fifth
     linearity_threshold: float = 0.02    # convert to a point below this linearity index (Civera et al.: 0.1),
     linearity_threshold_narrow: float = 0.1  # or this one below NARROW_WIDTH_PX, where speed decides (NOTES)
 
