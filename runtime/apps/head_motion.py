@@ -1,5 +1,5 @@
-"""The head-motion start of the closed loop: wait for the wearer to be still, take the head twice
-round a box in pan and elevation (:data:`CORNERS`) at the controlled-motion limit, and start SLAM
+"""The head-motion start of the closed loop: wait for the wearer to be still, take the head along
+the diagonals of a box in pan and elevation (:data:`CORNERS`) at the controlled-motion limit, and start SLAM
 metric from what the camera saw through that known motion (``runtime.slam.head_motion_start``).
 
 Only what a real wearable has is read: the images, the encoders (the head model gives the
@@ -29,7 +29,7 @@ class HeadMotionPlan:
     """The start's motion and its stillness test.
 
     amplitude_rad : how far the head turns each way in pan and in elevation from where it is
-        (both at once: the camera's centre goes round the corners of a box, so it moves across
+        (both at once: the camera's centre goes along the diagonals of a box, so it moves across
         the view both ways, and back and forth faster than a still wearer sways).
     still_rate_rad_s : the wearer is still when every 0.1 s mean of the gyro's rate over the
         last ``still_s`` is below this (the head holding).
@@ -47,9 +47,10 @@ class HeadMotionPlan:
     points: HeadMotionSettings = field(default_factory=HeadMotionSettings)
 
 
-#: The motion's corners in (elevation, pan), in units of the amplitude: the box's diagonals and
-#: sides, twice round, then home.
-CORNERS = ((1, 1), (-1, -1), (1, -1), (-1, 1)) * 2 + ((0, 0),)
+#: The motion's corners in (elevation, pan), in units of the amplitude: each diagonal of the box
+#: twice there and back, then home. Both joints reverse at (nearly) every corner, so the motion
+#: is faster than the wearer's sway in pan as in elevation.
+CORNERS = ((1, 1), (-1, -1)) * 2 + ((1, -1), (-1, 1)) * 2 + ((0, 0),)
 
 
 def waypoints(head: HeadGeometry, q0, amplitude_rad: float) -> np.ndarray:

@@ -11,7 +11,9 @@ first seen in, each frame's camera pose being the head model's at the encoders' 
 
 - the mount's turn is the gyro's turn of the camera less the head's, with a constant-rate
   correction (the gyro's bias); without a gyro, a polynomial in time (much weaker: on a near
-  planar scene a turn mimics a move);
+  planar scene a turn mimics a move). The gyro's axes and clock are first calibrated against the
+  encoders (:func:`calibrate_to_encoders`): a gyro's scale error on the head's turns moves every
+  point with the head as a wrong map scale does, so the images cannot find it;
 - the mount's move is a cubic spline in time with knots a second apart, held near zero by a
   prior. A still wearer's sway and breathing (0.1-0.3 Hz, millimetres) fit such a spline; the
   head's box, a leg every 0.7 s, does not, so the move the head model knows fixes the scale.
@@ -30,6 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.interpolate import BSpline
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinematics.camera import CameraIntrinsics, undistort
@@ -57,9 +60,9 @@ class HeadMotionSettings:
         s (a still wearer's sway is slower; the head's motion, faster).
     rotation_order : the degree of the polynomial in time of the mount's rotation vector
         without a gyro; gyro_rotation_order : the rotation's on top of the
-        gyro's turn where there is one (1: a constant rate, the gyro's bias).
-    gyro_offset_sigma_s : the prior on the gyro's clock offset from the camera's, s.
-    gyro_axes_sigma : the prior on each term of the gyro's axes' correction (scale, cross-axis).
+        gyro's turn where there is one (1: a constant rate, what the calibration left of its bias).
+    gyro_calibration_knot_s : the knot spacing, s, of the spline that takes the wearer's turn
+        when the gyro is calibrated against the encoders (:func:`calibrate_to_encoders`).
     drift_sigma_m, drift_sigma_rad : the prior on each coefficient (m, rad over the motion).
     max_drift_m : a solved drift above this means the wearer moved: the start is refused.
     min_baseline_m : the camera's centre must move at least this far in the motion.
@@ -80,8 +83,7 @@ class HeadMotionSettings:
     drift_knot_s: float = 1.0
     rotation_order: int = 4
     gyro_rotation_order: int = 1
-    gyro_offset_sigma_s: float = 0.01
-    gyro_axes_sigma: float = 0.01
+    gyro_calibration_knot_s: float = 1.0
     drift_sigma_m: float = 0.002
     drift_sigma_rad: float = math.radians(3.0)
     max_drift_m: float = 0.03
@@ -117,21 +119,22 @@ class GyroTurns:
     rad/s; each sample's rate held until the next), relative to time ``t0``, as a function of
     time (interpolated on the rotation group between samples). :meth:`at` takes a correction of
     the gyro's axes and scale (a MEMS gyro's are off by about 1%: on the head's 20 degree turns,
-    a tenth of a degree) and its clock offset; the adjustment estimates both, and its bias."""
+    a tenth of a degree), its bias and its clock offset; :func:`calibrate_to_encoders` finds
+    them."""
 
     def __init__(self, rows: np.ndarray, t0: float):
         rows = np.asarray(rows, float).reshape(-1, 7)
         rows = rows[np.r_[True, np.diff(rows[:, 0]) > 0]]
         if len(rows) < 2:
             raise ValueError("the gyro gave fewer than two samples over the head's motion")
-        self.t, self.t0 = rows[:, 0], float(np.clip(t0, rows[0, 0], rows[-1, 0]))
-        self._dphi = rows[:-1, 1:4] * np.diff(self.t)[:, None]       # each sample's turn, rad
+        self.t, self.t0 = rows[:, 0], float(t0)
+        self._w, self._dt = rows[:-1, 1:4], np.diff(self.t)[:, None]
         self._cache: tuple[bytes, Slerp] | None = None
 
-    def _slerp(self, E: np.ndarray) -> Slerp:
-        key = E.tobytes()
+    def _slerp(self, E: np.ndarray, bias: np.ndarray) -> Slerp:
+        key = E.tobytes() + bias.tobytes()
         if self._cache is None or self._cache[0] != key:
-            steps = Rotation.from_rotvec(self._dphi @ (np.eye(3) + E).T).as_matrix()
+            steps = Rotation.from_rotvec(((self._w - bias) * self._dt) @ (np.eye(3) + E).T).as_matrix()
             cum = np.empty((len(self.t), 3, 3))
             cum[0] = np.eye(3)
             for i, S in enumerate(steps):
@@ -139,12 +142,49 @@ class GyroTurns:
             self._cache = (key, Slerp(self.t, Rotation.from_matrix(cum)))
         return self._cache[1]
 
-    def at(self, t: np.ndarray, E: np.ndarray | None = None, delta_s: float = 0.0) -> np.ndarray:
+    def at(self, t: np.ndarray, E: np.ndarray | None = None, delta_s: float = 0.0,
+           bias: np.ndarray | None = None) -> np.ndarray:
         """(F, 3, 3) R_cam0_cam at times t (F,) s (held at the ends outside the samples), the
-        gyro's rates taken as (I + E) w (E (3, 3), default zero) and its clock ``delta_s`` late."""
-        sl = self._slerp(np.zeros((3, 3)) if E is None else np.asarray(E, float))
+        gyro's rates w taken as (I + E)(w - bias) (E (3, 3), bias (3,) rad/s, default zero) and
+        its clock ``delta_s`` late."""
+        sl = self._slerp(np.zeros((3, 3)) if E is None else np.asarray(E, float),
+                         np.zeros(3) if bias is None else np.asarray(bias, float))
         tt = np.clip(np.asarray(t, float) + delta_s, self.t[0], self.t[-1])
         return (sl([np.clip(self.t0 + delta_s, self.t[0], self.t[-1])]).inv() * sl(tt)).as_matrix()
+
+
+def calibrate_to_encoders(gyro: GyroTurns, t: np.ndarray, M: np.ndarray, knot_s: float = 1.0
+                          ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """The gyro's axes correction E (3, 3), clock offset delta (s) and bias (3,) rad/s for
+    :meth:`GyroTurns.at`, found against the encoders, and the fit's RMS, rad.
+
+    Through the motion the gyro sees the head's turns (20 degrees, fast, known from the encoders
+    through the head model's ``T_mount_cam`` (F, 4, 4) at the frames' times t (F,) s) on top of
+    the wearer's (a degree or so, slow). The E and delta that leave the mount's turn (the gyro's
+    turn of the camera less the head's) a slow spline in time (knots ``knot_s`` apart) are the
+    gyro's own. The bias is the sensor's (it turns with the head), so it is found with them.
+    Only the columns of E for the axes the head turns about are well fixed; the others barely
+    act on this motion. Huber's loss keeps the frames where a gyro sample straddles a sharp
+    reversal from pulling the fit.
+
+    Why first and apart: a gyro scale error e on the head's turn theta(t) turns the camera by
+    e theta(t), which moves the image as the head's own parallax r theta(t) / Z does (r the
+    camera's radius about the axis, Z the depth): on a near planar scene the adjustment cannot
+    tell them apart, and 0.1% of gyro scale is about 3% of map scale at r / Z = 0.03."""
+    R_m = M[:, :3, :3]
+    B = _spline_basis(t, knot_s)
+    # Frames the gyro's samples cover (with room for the clock offset): outside, it says nothing.
+    inside = (t >= gyro.t[0] + 0.01) & (t <= gyro.t[-1] - 0.01)
+
+    def residuals(p):
+        R_cam = gyro.at(t, p[1:10].reshape(3, 3), p[0], p[10:13])
+        R_turn = R_m[0][None] @ R_cam @ np.transpose(R_m, (0, 2, 1))          # the mount's, per the gyro
+        W = Rotation.from_rotvec(B @ p[13:].reshape(-1, 3)).as_matrix()
+        return Rotation.from_matrix(np.transpose(W, (0, 2, 1)) @ R_turn).as_rotvec()[inside].ravel()
+
+    sol = least_squares(residuals, np.zeros(13 + 3 * B.shape[1]), x_scale=1e-3, loss="huber", f_scale=2e-4)
+    p = sol.x
+    return p[1:10].reshape(3, 3), float(p[0]), p[10:13], float(np.sqrt(np.mean(sol.fun**2)))
 
 
 def baseline_m(T_mount_cam: np.ndarray) -> float:
@@ -181,10 +221,9 @@ class _Problem:
     (n,) each point's first frame; m (n, 3) its unit ray there; sigma_n the noise in normalised
     units; rot_order the degree of the mount's rotation vector's polynomial in time
     (:func:`_basis`); B_move (F, m) the basis of its translation (:func:`_spline_basis`); prior
-    (n_drift,) sigmas. gyro : the camera's turn as the gyro measured it, with t (F,) the frames'
-    times, s; then the mount's turn is the gyro's less the head's, the gyro read ``delta``
-    seconds later than the frames (the first drift parameter), times the rotation polynomial;
-    without, the polynomial is all of it."""
+    (n_drift,) sigmas. R_gyro (F, 3, 3) : the camera's turn at the frames as the calibrated
+    gyro measured it (R_cam0_cam); then the mount's turn is the gyro's less the head's, times the
+    rotation polynomial; without, the polynomial is all of it."""
 
     tau: np.ndarray
     M: np.ndarray
@@ -197,18 +236,12 @@ class _Problem:
     rot_order: int
     B_move: np.ndarray
     prior: np.ndarray
-    gyro: GyroTurns | None = None
-    t: np.ndarray | None = None
-
-    @property
-    def n_gyro(self) -> int:
-        """The gyro's parameters (with a gyro): its clock offset and its axes' correction (9)."""
-        return 10 if self.gyro is not None else 0
+    R_gyro: np.ndarray | None = None
 
     @property
     def n_rot(self) -> int:
-        """The rotation's parameters: the gyro's, then the polynomial's."""
-        return 3 * self.rot_order + self.n_gyro
+        """The rotation polynomial's parameters."""
+        return 3 * self.rot_order
 
     @property
     def n_drift(self) -> int:
@@ -218,15 +251,13 @@ class _Problem:
         """(F, 4, 4) T_cam0_cam from drift parameters d: the head model's poses on the mount
         turned by the rotation polynomial and moved by the translation spline."""
         F = len(self.tau)
-        g = self.n_gyro
-        w = _basis(self.tau, self.rot_order) @ d[g:self.n_rot].reshape(-1, 3)
+        w = _basis(self.tau, self.rot_order) @ d[:self.n_rot].reshape(-1, 3)
         b = d[self.n_rot:].reshape(-1, 3)
         D = np.tile(np.eye(4), (F, 1, 1))
         D[:, :3, :3] = Rotation.from_rotvec(w).as_matrix()
-        if self.gyro is not None:
+        if self.R_gyro is not None:
             R_m = self.M[:, :3, :3]
-            R_cam = self.gyro.at(self.t, d[1:10].reshape(3, 3), d[0])
-            R_turn = R_m[0][None] @ R_cam @ np.transpose(R_m, (0, 2, 1))
+            R_turn = R_m[0][None] @ self.R_gyro @ np.transpose(R_m, (0, 2, 1))
             D[:, :3, :3] = R_turn @ D[:, :3, :3]
         D[:, :3, 3] = self.B_move @ b
         return np.linalg.inv(self.M[0])[None] @ D @ self.M
@@ -445,15 +476,15 @@ class HeadMotionStart:
         fi, k, xy = fi[good], k[good], xy[good]
         t = np.array(self._t)
         tau = (t - t[0]) / max(t[-1] - t[0], 1e-9)
-        gyro, rot_order = None, s.rotation_order
+        R_gyro, rot_order = None, s.rotation_order
         if gyro_rows is not None and len(gyro_rows) >= 2:
-            gyro, rot_order = GyroTurns(gyro_rows, t[0]), s.gyro_rotation_order
+            gyro = GyroTurns(gyro_rows, t[0])
+            E, delta, bias, _ = calibrate_to_encoders(gyro, t, M, s.gyro_calibration_knot_s)
+            R_gyro, rot_order = gyro.at(t, E, delta, bias), s.gyro_rotation_order
         B_move = _spline_basis(t, s.drift_knot_s)
-        prior = np.r_[[s.gyro_offset_sigma_s] * (gyro is not None), [s.gyro_axes_sigma] * (9 * (gyro is not None)),
-                      np.full(3 * rot_order, s.drift_sigma_rad),
-                      np.full(3 * B_move.shape[1], s.drift_sigma_m)]
+        prior = np.r_[np.full(3 * rot_order, s.drift_sigma_rad), np.full(3 * B_move.shape[1], s.drift_sigma_m)]
         sigma_n = s.pixel_sigma / self.cam.fx
-        pb = _Problem(tau, M, fi, k, xy, anchor, m, sigma_n, rot_order, B_move, prior, gyro, t)
+        pb = _Problem(tau, M, fi, k, xy, anchor, m, sigma_n, rot_order, B_move, prior, R_gyro)
         x = np.r_[np.zeros(pb.n_drift), np.full(len(cols), 1.0 / s.initial_depth_m)]
         x = _adjust(pb, x)
         for _ in range(2):
@@ -472,7 +503,7 @@ class HeadMotionStart:
             o = keep[pb.pj]
             cols = cols[keep]
             pb = _Problem(tau, M, pb.fi[o], new[pb.pj[o]], pb.xy[o], pb.anchor[keep], pb.m[keep], sigma_n,
-                          rot_order, B_move, prior, gyro, t)
+                          rot_order, B_move, prior, R_gyro)
             x = _adjust(pb, np.r_[x[:pb.n_drift], x[pb.n_drift:][keep]])
         nd = pb.n_drift
         d, rho = x[:nd], x[nd:]

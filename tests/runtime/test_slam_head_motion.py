@@ -16,12 +16,17 @@ from kinematics import forward_kinematics
 from kinematics.camera import default_camera
 from kinematics.geometry import reference_head
 from runtime.apps.head_motion import CORNERS, HeadMotionPhase, HeadMotionPlan, level_attitude, waypoints
-from runtime.slam.head_motion_start import GyroTurns, HeadMotionSettings, HeadMotionStart, point_at_pixel
+from runtime.slam.head_motion_start import (GyroTurns, HeadMotionSettings, HeadMotionStart, calibrate_to_encoders,
+                                             point_at_pixel)
 from runtime.slam.natural_start import StartWait
 
 CAM = default_camera()
 K = np.array([[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1.0]])
 RATE = math.radians(30.0)
+#: The synthetic gyro's errors: 0.5% scale and cross-axis terms, a bias (rad/s), a 3 ms late clock.
+GYRO_AXES = np.array([[0.005, 0.003, 0.0], [-0.002, -0.004, 0.003], [0.0, 0.002, 0.005]])
+GYRO_BIAS = np.array([0.004, -0.006, 0.003])
+GYRO_LATE_S = 0.003
 
 
 def _texture(seed: int = 0, size: int = 1400) -> np.ndarray:
@@ -80,36 +85,47 @@ def _depth_true(X: np.ndarray) -> np.ndarray:
 
 def _scene(drift: bool, seed: int = 0):
     """Frames of the motion (two textured planes, each pixel the nearer), their times, the
-    head-model poses, the true camera poses (first camera's frame) and gyro rows."""
+    head-model poses, the true camera poses (first camera's frame) and gyro rows.
+
+    The joints move as a servo does: rate-limited, and with its reversals rounded over 60 ms (a
+    finite acceleration); the gyro samples the same motion every 5 ms, so it agrees with the
+    frames' poses at the corners too."""
     head = reference_head()
     q0 = np.array([0.0, 0.0, 0.0])
-    dt = 1 / 30
-    qs = _joint_path(q0, math.radians(10.0), dt)
-    t = np.arange(len(qs)) * dt
-    M = forward_kinematics(head, qs).T_mount_cam
-    # A still wearer: breathing turns the mount ~0.6 deg, sway moves it a few mm, slowly.
-    D = np.tile(np.eye(4), (len(t), 1, 1))
-    if drift:
-        rng = np.random.default_rng(seed)
-        ph = rng.uniform(0, 2 * np.pi, 2)
-        D[:, :3, :3] = Rotation.from_rotvec(np.outer(np.sin(2 * np.pi * 0.25 * t + ph[0]) - np.sin(ph[0]),
-                                                     [0.0, 0.01, 0.004])).as_matrix()
-        D[:, :3, 3] = np.outer(np.sin(2 * np.pi * 0.2 * t + ph[1]) - np.sin(ph[1]), [0.004, 0.003, 0.002])
-    T_c0 = np.linalg.inv(M[0])[None] @ D @ M                # true T_cam0_cam
+    h = 0.001
+    q_fine = _joint_path(q0, math.radians(10.0), h)
+    kernel = np.ones(60) / 60
+    q_fine = np.column_stack([np.convolve(np.pad(q, (30, 29), mode="edge"), kernel, mode="valid") for q in q_fine.T])
+    t_fine = np.arange(len(q_fine)) * h
+    rng = np.random.default_rng(seed)
+    ph = rng.uniform(0, 2 * np.pi, 2)
+
+    def poses(t):
+        """(n, 4, 4) head-model poses and true T_cam0_cam at times t (n,) s."""
+        q = np.column_stack([np.interp(t, t_fine, qj) for qj in q_fine.T])
+        M = forward_kinematics(head, q).T_mount_cam
+        # A still wearer: breathing turns the mount ~0.6 deg, sway moves it a few mm, slowly.
+        D = np.tile(np.eye(4), (len(t), 1, 1))
+        if drift:
+            D[:, :3, :3] = Rotation.from_rotvec(np.outer(np.sin(2 * np.pi * 0.25 * t + ph[0]) - np.sin(ph[0]),
+                                                         [0.0, 0.01, 0.004])).as_matrix()
+            D[:, :3, 3] = np.outer(np.sin(2 * np.pi * 0.2 * t + ph[1]) - np.sin(ph[1]), [0.004, 0.003, 0.002])
+        M0 = forward_kinematics(head, q_fine[:1]).T_mount_cam[0]
+        return M, np.linalg.inv(M0)[None] @ D @ M
+
+    t = np.arange(0.0, t_fine[-1], 1 / 30)
+    M, T_c0 = poses(t)
     texs = (_texture(seed, 1600), _texture(seed + 10, 3000))
     frames = []
     for T in T_c0:
         views = [_plane_frame(tex, n, p, T[:3, :3], T[:3, 3]) for tex, (n, p) in zip(texs, PLANES)]
         near = views[0][1] <= views[1][1]
         frames.append(np.where(near, views[0][0], views[1][0]))
-    gyro_t = np.arange(0, t[-1] + 1e-9, 0.005)
-    from scipy.spatial.transform import Slerp
-    R_g = Slerp(t, Rotation.from_matrix(T_c0[:, :3, :3]))(gyro_t)
+    gyro_t = np.arange(0, t_fine[-1], 0.005)
+    R_g = Rotation.from_matrix(poses(gyro_t)[1][:, :3, :3])
     w = (R_g[:-1].inv() * R_g[1:]).as_rotvec() / 0.005          # the camera's rates, camera frame
-    # A MEMS gyro's errors: a bias, 0.5% scale and cross-axis terms, a 3 ms late clock.
-    E = np.array([[0.005, 0.003, 0.0], [-0.002, -0.004, 0.003], [0.0, 0.002, 0.005]])
-    w = w @ (np.eye(3) + E).T + [0.004, -0.006, 0.003]
-    rows = np.column_stack([gyro_t[:-1] + 0.003, w, np.zeros((len(w), 3))])
+    w = w @ (np.eye(3) + GYRO_AXES).T + GYRO_BIAS                  # a MEMS gyro's errors
+    rows = np.column_stack([gyro_t[:-1] + GYRO_LATE_S, w, np.zeros((len(w), 3))])
     return frames, t, M, T_c0, rows
 
 
@@ -147,6 +163,18 @@ def test_points_land_on_the_plane_at_its_true_distance(drifting):
     sd = np.sqrt(np.einsum("ni,nij,nj->n", u, r.start.xyz_cov, u))
     err = np.linalg.norm(X, axis=1) - depth_true
     assert np.mean(np.abs(err) < 3 * sd) > 0.8
+
+
+def test_the_gyro_is_calibrated_against_the_encoders(drifting):
+    """The gyro's axes (for the axes the head turns about), bias and clock come from comparing its
+    turn with the encoders' through a breathing wearer's slow turn."""
+    frames, t, M, T_c0, rows = drifting
+    E, delta_s, bias, rms = calibrate_to_encoders(GyroTurns(rows, t[0]), t, M)
+    want = np.linalg.inv(np.eye(3) + GYRO_AXES) - np.eye(3)        # the correction undoes the error
+    assert abs(delta_s - GYRO_LATE_S) < 5e-4, delta_s
+    assert np.abs(E[:, :2] - want[:, :2]).max() < 1e-3, E
+    assert np.abs(bias - GYRO_BIAS).max() < 1e-3, bias
+    assert rms < 5e-4
 
 
 def test_ignoring_the_drift_gets_the_scale_wrong(drifting):
