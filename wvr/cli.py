@@ -931,7 +931,7 @@ def _start_option(p: argparse.ArgumentParser, fixate_default: str) -> None:
     p.add_argument("--start", choices=list(STARTS), default="target",
                    help="how SLAM starts (every task runs it; stabilise, body and track only observe it): target "
                         "(the printed target's clicked corners, the default) or head-motion "
-                        "(no target: once the wearer keeps still, the head goes twice round a box in pan and "
+                        "(no target: once the wearer keeps still, the head goes along the diagonals of a box in pan and "
                         "elevation, and that known motion fixes the scale, then the task begins; not with track; "
                         "targets are then in its world frame: "
                         f"origin at the first camera, z up, x ahead; fixate's default target is {fixate_default})")
