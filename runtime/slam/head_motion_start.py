@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import BSpline
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from kinematics.camera import CameraIntrinsics, undistort
 
@@ -114,10 +114,26 @@ class HeadMotionResult:
     tracked: int
 
 
+def _running_product(steps: Rotation) -> Rotation:
+    """(n + 1) rotations: the identity, then S_0, S_0 S_1, ..., S_0 ... S_{n-1} of the n ``steps``
+    (each applied in the frame the ones before left), as a prefix scan: log2(n) vectorised
+    passes, each taking every product over twice the span, instead of n matrix products."""
+    q = steps.as_quat()                                   # (n, 4) x, y, z, w
+    shift = 1
+    while shift < len(q):
+        a, b = q[:-shift], q[shift:]
+        ab = np.empty_like(b)                             # Hamilton products a b, element-wise
+        ab[:, :3] = a[:, 3:] * b[:, :3] + b[:, 3:] * a[:, :3] + np.cross(a[:, :3], b[:, :3])
+        ab[:, 3] = a[:, 3] * b[:, 3] - np.einsum("ij,ij->i", a[:, :3], b[:, :3])
+        q = np.concatenate([q[:shift], ab])
+        shift *= 2
+    return Rotation.from_quat(np.concatenate([[[0.0, 0.0, 0.0, 1.0]], q]))
+
+
 class GyroTurns:
     """The camera's turn integrated from gyro rows (k, 7) ``[t, wx, wy, wz, ...]`` (camera frame,
     rad/s; each sample's rate held until the next), relative to time ``t0``, as a function of
-    time (interpolated on the rotation group between samples). :meth:`at` takes a correction of
+    time (within a sample, the fraction of its turn). :meth:`at` takes a correction of
     the gyro's axes and scale (a MEMS gyro's are off by about 1%: on the head's 20 degree turns,
     a tenth of a degree), its bias and its clock offset; :func:`calibrate_to_encoders` finds
     them."""
@@ -129,17 +145,15 @@ class GyroTurns:
             raise ValueError("the gyro gave fewer than two samples over the head's motion")
         self.t, self.t0 = rows[:, 0], float(t0)
         self._w, self._dt = rows[:-1, 1:4], np.diff(self.t)[:, None]
-        self._cache: tuple[bytes, Slerp] | None = None
+        self._cache: tuple[bytes, tuple[Rotation, np.ndarray]] | None = None
 
-    def _slerp(self, E: np.ndarray, bias: np.ndarray) -> Slerp:
+    def _turns(self, E: np.ndarray, bias: np.ndarray) -> tuple[Rotation, np.ndarray]:
+        """The turn at every sample's stamp (n,) and each sample's own turn, rotation vectors
+        (n - 1, 3), for a correction E and a bias (cached: the adjustment asks again and again)."""
         key = E.tobytes() + bias.tobytes()
         if self._cache is None or self._cache[0] != key:
-            steps = Rotation.from_rotvec(((self._w - bias) * self._dt) @ (np.eye(3) + E).T).as_matrix()
-            cum = np.empty((len(self.t), 3, 3))
-            cum[0] = np.eye(3)
-            for i, S in enumerate(steps):
-                cum[i + 1] = cum[i] @ S
-            self._cache = (key, Slerp(self.t, Rotation.from_matrix(cum)))
+            phi = ((self._w - bias) * self._dt) @ (np.eye(3) + E).T
+            self._cache = (key, (_running_product(Rotation.from_rotvec(phi)), phi))
         return self._cache[1]
 
     def at(self, t: np.ndarray, E: np.ndarray | None = None, delta_s: float = 0.0,
@@ -147,10 +161,16 @@ class GyroTurns:
         """(F, 3, 3) R_cam0_cam at times t (F,) s (held at the ends outside the samples), the
         gyro's rates w taken as (I + E)(w - bias) (E (3, 3), bias (3,) rad/s, default zero) and
         its clock ``delta_s`` late."""
-        sl = self._slerp(np.zeros((3, 3)) if E is None else np.asarray(E, float),
-                         np.zeros(3) if bias is None else np.asarray(bias, float))
-        tt = np.clip(np.asarray(t, float) + delta_s, self.t[0], self.t[-1])
-        return (sl([np.clip(self.t0 + delta_s, self.t[0], self.t[-1])]).inv() * sl(tt)).as_matrix()
+        cum, phi = self._turns(np.zeros((3, 3)) if E is None else np.asarray(E, float),
+                               np.zeros(3) if bias is None else np.asarray(bias, float))
+
+        def turn(tau):
+            # Within a sample the rate is held: the turn so far, then that fraction of its own.
+            tau = np.clip(np.atleast_1d(np.asarray(tau, float)), self.t[0], self.t[-1])
+            i = np.clip(np.searchsorted(self.t, tau, side="right") - 1, 0, len(phi) - 1)
+            return cum[i] * Rotation.from_rotvec(phi[i] * ((tau - self.t[i]) / self._dt[i, 0])[:, None])
+
+        return (turn(self.t0 + delta_s).inv() * turn(np.asarray(t, float) + delta_s)).as_matrix()
 
 
 def calibrate_to_encoders(gyro: GyroTurns, t: np.ndarray, M: np.ndarray, knot_s: float = 1.0
