@@ -2,7 +2,8 @@
 no target in SLAM's start (``wvr sim run --start head-motion``), beside the printed-target start on
 the same scenes and seeds.
 
-Per run (task fixate, camera only for SLAM's map and pose: the gyro serves the start alone):
+Per run (task fixate; no target, no depth: SLAM's map and pose from the camera, its prediction
+from the IMU as in every closed-loop run):
 
 - the start's map's scale error: its points' depths over the twin's true depth image at the
   start's frame, the median less one (head-motion starts);
@@ -13,7 +14,7 @@ Per run (task fixate, camera only for SLAM's map and pose: the gyro serves the s
   (for the target start, none: the target fixes the world);
 - when SLAM started (the wait for stillness and the motion), frames lost, the fixation error.
 
-``python benchmarks/bench_head_motion.py [--seeds 2,3,4] [--scenarios ...] [--jobs 2] [--out DIR]``
+``python benchmarks/bench_head_motion.py [--seeds 2,3,4] [--scenarios ...] [--jobs 2] [--no-imu] [--out DIR]``
 writes ``head_motion.json`` and ``head_motion.md`` into DIR (default a temporary folder).
 """
 
@@ -43,16 +44,17 @@ SECONDS = 14.0
 
 
 def _job(args) -> dict:
-    start, scenario, seed, root = args
+    start, scenario, seed, root, no_imu = args
     from runtime.eval import trajectory_errors
     from runtime.sequence import read_trajectory
     from wvr.cli import main
 
-    out = Path(root) / f"{start}-{scenario}-{seed}"
+    out = Path(root) / f"{start}{'-camera' if no_imu else ''}-{scenario}-{seed}"
     code = main(["sim", "run", "--task", "fixate", "--scenario", scenario, "--seed", str(seed), "--start", start,
-                 "--seconds", str(SECONDS), "--no-session-log", "--out", str(out)])
+                 "--seconds", str(SECONDS), "--no-session-log", "--out", str(out)] + (["--no-imu"] if no_imu else []))
     s = json.loads((out / "summary.json").read_text())
-    rec = {"start": start, "scenario": scenario, "seed": seed, "exit": code, "lost_frames": s.get("lost_frames"),
+    rec = {"start": start + (" (camera only)" if no_imu else ""), "scenario": scenario, "seed": seed, "exit": code,
+           "lost_frames": s.get("lost_frames"),
            "fixation_rms_deg": s.get("fixation_rms_deg"), "map_scale_error": s.get("start_map_scale_error")}
     est, gt = read_trajectory(out / "trajectory.tum"), read_trajectory(out / "groundtruth.txt")
     if len(est.t) < 2:
@@ -81,7 +83,7 @@ def _table(rows: list[dict]) -> str:
                      f"{100 * r['scale_error']:+.1f}% | {100 * r['ate_m']:.2f} (max {100 * r['ate_max_m']:.2f}) | "
                      f"{100 * r['ate_sim3_m']:.2f} | {r['lost_frames']} | {r['fixation_rms_deg']:.2f} |")
     out = ["\n".join(lines), ""]
-    for start in ("head-motion", "target"):
+    for start in dict.fromkeys(r["start"] for r in rows):
         ok = [r for r in rows if r["start"] == start and r.get("started")]
         if ok:
             ate = np.array([r["ate_m"] for r in ok])
@@ -104,11 +106,12 @@ def main() -> None:
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--starts", default="head-motion,target")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--no-imu", action="store_true", help="SLAM from the camera alone (the start still reads the IMU)")
     ap.add_argument("--out", default=None, help="folder for the runs and the table (default: a temporary one)")
     a = ap.parse_args()
     root = Path(a.out or tempfile.mkdtemp(prefix="bench_head_motion_"))
     root.mkdir(parents=True, exist_ok=True)
-    jobs = [(st, sc, int(sd), str(root)) for sc in a.scenarios.split(",") for sd in a.seeds.split(",")
+    jobs = [(st, sc, int(sd), str(root), a.no_imu) for sc in a.scenarios.split(",") for sd in a.seeds.split(",")
             for st in a.starts.split(",")]
     with ProcessPoolExecutor(max_workers=a.jobs) as ex:
         rows = list(ex.map(_job, jobs))

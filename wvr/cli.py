@@ -391,7 +391,7 @@ def cmd_sim_run(args) -> int:
     region = None if getattr(args, "init", None) is None else tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region,
                 method=getattr(args, "method", "hyperplane"), recentre_per_s=_recentre(args), start=start,
-                glances=getattr(args, "glances", False))
+                glances=getattr(args, "glances", False), slam_imu=not getattr(args, "no_imu", False))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(args.limit))
     with output_folder(args.out, kind="sim run") as out:    # INCOMPLETE until the end
         twin = make_twin(args.head, args.mount, args.camera)
@@ -705,7 +705,7 @@ def cmd_run(args) -> int:
             raise ValueError("--init takes four numbers X,Y,W,H (pixels in the first frame)")
         region = tuple(float(v) for v in args.init)
     task = Task(args.task, np.array(targets).reshape(-1, 3), dwell_s=dwell, region=region, method=args.method,
-                recentre_per_s=_recentre(args), start=start_kind, glances=args.glances)
+                recentre_per_s=_recentre(args), start=start_kind, glances=args.glances, slam_imu=not args.no_imu)
     limit = min(args.limit, math.degrees(cfg.safety.motion_limit_rad_s))
     settings = ControllerSettings(motion_limit_rad_s=math.radians(limit))
     if task.uses_slam and start is None and start_kind == "target":
@@ -944,6 +944,13 @@ def _glances_option(p: argparse.ArgumentParser) -> None:
                         "(over 1 cm), the head looks briefly where that direction is best observed and comes back")
 
 
+def _slam_imu_option(p: argparse.ArgumentParser) -> None:
+    """--no-imu: the closed loop's SLAM from the camera alone (Task.slam_imu)."""
+    p.add_argument("--no-imu", action="store_true",
+                   help="SLAM from the camera alone, the paper's system: the IMU drives no prediction (the "
+                        "head-motion start still reads it to wait for a still wearer and to fit its motion)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from runtime.apps.closed_loop import TASKS
     from runtime.twin.scenarios import SCENARIOS
@@ -1071,6 +1078,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default 2.5; 0: the exact projection)")
     _start_option(run, "the clicked point")
     _glances_option(run)
+    _slam_imu_option(run)
     run.add_argument("--out", required=True, help="output directory")
     _session_log_option(run)
     _twin_options(run, SCENARIOS)
@@ -1107,6 +1115,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="seconds on each saccade target (default 2), or on each fixation explore chooses (default 1.5)")
     _start_option(rr, "the start target's clicked centre, else the image's centre")
     _glances_option(rr)
+    _slam_imu_option(rr)
     rr.add_argument("--limit", type=_positive, default=MOTION_LIMIT_DEG_S,
                     help="controlled-motion limit, deg/s (at most rig.toml's)")
     rr.add_argument("--init", type=_box, metavar="X,Y,W,H", help="track: the region in the first frame, pixels")

@@ -35,6 +35,7 @@ import json
 import math
 import signal
 import threading
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -52,7 +53,7 @@ from ..session_log import SESSION_FILE, LoopRecorder
 from ..background import DelayedResult
 from ..robot import JointCommand, Observation, Robot, RobotInfo, SessionEnded, TruthSource
 from ..sequence import Target, write_trajectory
-from ..slam.config import DEFAULT_CONFIG, SlamConfig
+from ..slam.config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from ..slam.head_motion_start import point_at_pixel
 from ..slam.system import MonoSLAM
 from .explore import ExploreSettings, choose_beyond_reach, choose_fixation, viewing_cone_sr
@@ -116,7 +117,8 @@ class Task:
     track; targets are then in the world frame that start makes, and fixate's default target is
     the clicked point or the image's centre). glances : fixate: leave the target briefly when
     SLAM's pose grows uncertain along one direction, look where that direction is best
-    observed, come back (runtime.apps.glances)."""
+    observed, come back (runtime.apps.glances). slam_imu : SLAM's prediction takes the IMU (False:
+    the camera alone, the paper's system; the head-motion start reads the IMU either way)."""
 
     kind: str
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -126,6 +128,7 @@ class Task:
     recentre_per_s: float = 0.0
     start: str = "target"
     glances: bool = False
+    slam_imu: bool = True
 
     def __post_init__(self):
         if self.kind not in TASKS:
@@ -180,6 +183,9 @@ ASK_AFTER_S = 6.0
 #: The views beyond reach are searched beside the loop (about a second of CPU) on a snapshot
 #: of the map; the answer is acted on this long after the snapshot.
 ASK_SEARCH_DELAY_S = 1.0
+#: Frames SLAM goes through each period after a head-motion start, to reach the present from the
+#: frame the start was solved at (the head holds meanwhile).
+CATCH_UP_PER_PERIOD = 3
 
 #: Explore's and the glances' choices (a fixation IK per candidate view, about half a second of
 #: CPU) are made beside the loop on a snapshot of the map and acted on this long after it; explore
@@ -249,7 +255,8 @@ class LoopRow:
     meas_rate : the observation's joint angles (encoders, or commands where the robot has no
     encoders: see ``q_source``) and their rate. mode : the controller's mode. target : the
     current fixation or saccade target (NaN if none). est_error_deg : the controller's own
-    estimate of its error. T_est : (4, 4) SLAM's camera pose (NaN without SLAM). lost : SLAM
+    estimate of its error. T_est : (4, 4) SLAM's camera pose (NaN without SLAM; the frames a
+    head-motion start's SLAM goes through late get theirs when it is made). lost : SLAM
     lost this frame. polygon : (4, 2) the 2D tracker's region (NaN without). track_lost.
     reachable : the target was within the head's reach (else the head held and the wearer was
     prompted).
@@ -283,11 +290,13 @@ class LoopRow:
 @dataclass
 class LoopLog:
     """Everything the loop did, for writing and for evaluation: the rows, and the events
-    (saccade starts and landings), refusals and prompts in time order."""
+    (saccade starts and landings), refusals and prompts in time order. task_t0 : when the task
+    began, s (after a head-motion start, once SLAM has caught up; None before)."""
 
     rows: list[LoopRow] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     refusals: list[dict] = field(default_factory=list)
+    task_t0: float | None = None
 
     def column(self, name: str) -> np.ndarray:
         return np.array([getattr(r, name) for r in self.rows], float)
@@ -341,6 +350,7 @@ class ClosedLoop:
         self.external = False
         self.head_start: HeadMotionPhase | None = None
         self.start_result = None            # the head-motion start's HeadMotionResult, once made
+        self._catch_up: deque | None = None  # the frames SLAM has still to go through after it
         self._task_t0: float | None = None  # when the task began (the saccades' dwell counts from it)
         self.explore_settings = ExploreSettings()
         self.explore_choice = None          # explore: the last ExploreChoice (candidates and scores)
@@ -360,9 +370,12 @@ class ClosedLoop:
         if callable(self.start_target):
             self.start_target = self.start_target(obs)
         if self.task.uses_slam or self.task.start == "head-motion" or self.start_target is not None:
-            self.slam = MonoSLAM(self.info.camera, slam_config(self.info), imu=True)
+            # Camera only (slam_imu False): the IMU is still read by the head-motion start.
+            map_settings = MapSettings() if self.task.slam_imu else replace(MapSettings(), use_imu=False)
+            self.slam = MonoSLAM(self.info.camera, slam_config(self.info), map_settings, imu=self.task.slam_imu)
             if self.task.start == "head-motion":
-                self.head_start = HeadMotionPhase(self.info.head, self.info.camera, obs.q)
+                self.head_start = HeadMotionPhase(self.info.head, self.info.camera, obs.q,
+                                                  clock_waits=self.info.clock_waits)
             else:
                 self.slam.start(obs.image, obs.t, self.start_target)
         self.ctl = GazeController(self.info.head, self.info.camera, obs.q, self.dt, self.settings)
@@ -378,7 +391,7 @@ class ClosedLoop:
         self._q_prev = np.asarray(obs.q, float).copy()
         self._i = 0
         self._basis_t = obs.t
-        self._task_t0 = obs.t if self.head_start is None else None
+        self._task_t0 = self.log.task_t0 = obs.t if self.head_start is None else None
 
     @property
     def prompts(self):
@@ -633,19 +646,38 @@ class ClosedLoop:
 
     def _head_motion_start(self, obs: Observation) -> bool:
         """A period of the head-motion start; True at the period SLAM starts (the task begins)."""
-        phase = self.head_start
-        n_said = len(phase.said)
-        r = phase.step(obs, self.ctl)
-        for t, text in phase.said[n_said:]:
-            self.log.events.append({"t": t, "event": "start", "text": text})
-        if r is None:
+        phase, slam = self.head_start, self.slam
+        if self._catch_up is None:
+            n_said = len(phase.said)
+            r = phase.step(obs, self.ctl)
+            for t, text in phase.said[n_said:]:
+                self.log.events.append({"t": t, "event": "start", "text": text})
+            if r is None:
+                return False
+            # The start is at the frame its solve was asked at; SLAM then goes through the
+            # frames seen since, a few a period, the head holding, before the task begins.
+            slam.add_imu(phase.imu_rows)
+            image, t_start = phase.frame
+            slam.start_natural(image, t_start, r.start)
+            self._fill_pose(t_start)
+            self.start_result, self._catch_up = r, deque(phase.backlog)
+        else:
+            self.ctl.hold()
+            slam.add_imu(obs.imu.rows())
+        if obs.fresh_image:
+            self._catch_up.append((obs.image, obs.t))
+        for _ in range(CATCH_UP_PER_PERIOD):
+            if not self._catch_up:
+                break
+            image, t_frame = self._catch_up.popleft()
+            slam.process(image, t_frame)
+            self._fill_pose(t_frame)
+        if self._catch_up:
             return False
-        slam = self.slam
-        slam.add_imu(phase.imu_rows)
-        slam.start_natural(obs.image, obs.t, r.start)
-        self.start_result = r
+        r = self.start_result
+        self._catch_up = None
         self.head_start = None
-        self._task_t0 = obs.t
+        self._task_t0 = self.log.task_t0 = obs.t
         if self.task.kind == "fixate" and len(self.task.targets) == 0:
             # Fixate what the person clicked in the first image (start() took the clicks), else
             # what the camera looked at.
@@ -657,6 +689,17 @@ class ClosedLoop:
             self.log.events.append({"t": obs.t, "event": "start", "text": "fixation target from the first image's "
                                     f"{'click' if tgt is not None else 'centre'}: {np.round(p, 3).tolist()} m"})
         return True
+
+    def _fill_pose(self, t: float) -> None:
+        """SLAM's pose at the frame of time t, gone through late (after a head-motion start), into
+        that period's row: the estimate from the frames up to it, as if made on time."""
+        rows = self.log.rows
+        for k in range(len(rows) - 1, -1, -1):
+            if rows[k].t == t:
+                rows[k] = replace(rows[k], T_est=self.slam.T_world_cam(), lost=not self.slam.localised)
+                return
+            if rows[k].t < t:
+                return
 
     def step(self, obs: Observation) -> JointCommand:
         """One period: the observation in (after the robot's step, or the first one after
@@ -676,7 +719,8 @@ class ClosedLoop:
                 slam.process(obs.image, obs.t, imu=np.vstack(self._imu_pending))
                 self._imu_pending = []
         lost = bool(slam is not None and not slam.localised)
-        T_est = slam.T_world_cam() if slam is not None and not lost else None
+        behind = self._catch_up is not None       # SLAM's pose is a past frame's: none for now
+        T_est = slam.T_world_cam() if slam is not None and not lost and not behind else None
         v_est = slam.state.v.copy() if T_est is not None else None
         # Stabilise, body and track run SLAM to be scored, not to be steered by: their control
         # gets no pose unless an operator has taken over (a saccade needs one).
@@ -765,7 +809,8 @@ class ClosedLoop:
         self.log.rows.append(LoopRow(
             t=obs.t, cmd_q=cmd.q.copy(), meas_q=q.copy(), cmd_rate=cmd.qd.copy(), meas_rate=qd_meas, mode=cmd.mode,
             target=np.asarray(tgt, float).copy(), est_error_deg=err, q_source=obs.q_source,
-            T_est=slam.T_world_cam() if slam is not None and slam.started else np.full((4, 4), np.nan), lost=lost,
+            T_est=slam.T_world_cam() if slam is not None and slam.started and not behind else np.full((4, 4), np.nan),
+            lost=lost,
             polygon=np.asarray(poly, float), track_lost=track_lost, reachable=bool(cmd.reachable)))
         self._i += 1
         return JointCommand(cmd.q, cmd.qd, basis_t=self._basis_t)
@@ -812,7 +857,7 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
     bar = progress_bar(total=n_frames, desc=f"closed loop {task.kind} ({label or info.name})", unit="frame",
                disable=not progress)
     ctrl_c = _CtrlC()
-    start_depth, n_said, n_prompts = None, 0, 0
+    start_depth, depth_at, n_said, n_prompts = None, None, 0, 0
     try:
         i = 0
         while True:
@@ -830,9 +875,12 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
                     if wearer(t_p, prompt):
                         loop.log.events.append({"t": t_p, "event": "wearer-obeys", "text": prompt.text})
             n_prompts = len(loop.prompts)
-            if loop.start_result is not None and start_depth is None and hasattr(truth, "render_depth"):
-                # Scoring only, after the step: the true depth where the head-motion start was made.
-                start_depth = truth.render_depth()
+            phase = loop.head_start
+            if phase is not None and phase.solving_at is not None and phase.solving_at != depth_at \
+                    and hasattr(truth, "render_depth"):
+                # Scoring only, after the step: the true depth at the frame the head-motion start
+                # is solved at (once per try).
+                depth_at, start_depth = phase.solving_at, truth.render_depth()
             if recorder is not None:
                 recorder.period(loop, obs, cmd)
             if on_period is not None:
@@ -886,7 +934,8 @@ def run_closed_loop(robot: Robot, task: Task, out: str | Path, start_target: Sta
         has = np.isfinite(T_est).all(axis=(1, 2))
         write_trajectory(out / "trajectory.tum", times[has], T_est[has], header="SLAM camera-to-world poses during the loop")
     if truth is not None:
-        T_true = np.array([tr.T_world_cam for tr in truths])
+        # A step that raised has its truth but no row.
+        T_true = np.array([tr.T_world_cam for tr in truths[:len(log.rows)]])
         write_trajectory(out / "groundtruth.txt", times, T_true, header="true camera-to-world poses (optical frame)")
         summary.update(evaluate(log, T_true, truth.landmarks(), loop.task, info.camera, loop.region_uv, out))
         if loop.start_result is not None and start_depth is not None:
@@ -916,6 +965,7 @@ def task_toml(task: Task, extra: dict) -> str:
     lines = ['# the closed-loop task, world frame (m)']
     for k, v in extra.items():
         lines.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v}")
-    lines += [f'task = "{task.kind}"', f"dwell_s = {task.dwell_s}",
+    lines += [f'task = "{task.kind}"', f'start = "{task.start}"', f"slam_imu = {str(task.slam_imu).lower()}",
+              f"dwell_s = {task.dwell_s}",
               "targets = [" + ", ".join("[" + ", ".join(f"{v:.6f}" for v in p) + "]" for p in task.targets) + "]"]
     return "\n".join(lines) + "\n"

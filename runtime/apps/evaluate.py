@@ -167,6 +167,8 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
     T_est = np.array([r.T_est for r in log.rows])
     if task.start == "head-motion":
         s.update(_head_motion_scores(times, T_est, T_true))
+        if log.task_t0 is not None:
+            s["task_start_s"] = float(log.task_t0 - times[0])
         A = s.pop("T_true_est", None)
         if targets is not None and A is not None:
             # The targets are in the start's world: the truth's through the start-frame alignment.
@@ -179,9 +181,10 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
     if task.kind in ("fixate", "saccade"):
         err = np.degrees(fixation_errors(T_true, targets))
         s["fixation_error_deg"] = err.tolist()
-        if "slam_start_s" in s:
-            # A head-motion start: the task begins once SLAM has started.
-            after = after & (times >= times[0] + s["slam_start_s"] + 1.0) & np.isfinite(err)
+        if task.start == "head-motion":
+            # A head-motion start: scored from a second after the task began (SLAM caught up).
+            t0 = log.task_t0 if log.task_t0 is not None else np.inf
+            after = after & (times >= t0 + 1.0) & np.isfinite(err)
         if getattr(task, "glances", False):
             # The fixation's error is scored outside the glances (from leaving to landing back).
             away, g = _glance_windows(times, log.events)
@@ -193,7 +196,7 @@ def evaluate(log, T_true: np.ndarray, landmarks: dict, task, camera: CameraIntri
             s["landings"] = _landings(times, err, log.events)
     if task.kind in ("stabilise", "body") and s.get("slam_started", True):
         # The attitude held is the one at the task's start (after a head-motion start's motion).
-        k0 = int(np.searchsorted(times, times[0] + s["slam_start_s"] - 1e-9)) if "slam_start_s" in s else 0
+        k0 = int(np.searchsorted(times, log.task_t0 - 1e-9)) if log.task_t0 is not None else 0
         pr = np.degrees(pitch_roll(T_true[:, :3, :3]))
         dev = np.abs(pr[k0:] - pr[k0])
         s.update(pitch_max_dev_deg=float(dev[:, 0].max()), roll_max_dev_deg=float(dev[:, 1].max()),

@@ -5,7 +5,9 @@ metric from what the camera saw through that known motion (``runtime.slam.head_m
 Only what a real wearable has is read: the images, the encoders (the head model gives the
 camera's pose on the mount at their angles), and the IMU (the wearer's stillness, and gravity to
 level the world frame). The phase drives the head through the controller's ``slave`` mode, so
-the motion passes the same command filter and limits as every other.
+the motion passes the same command filter and limits as every other. The start's solve (seconds
+of CPU) runs on a worker thread while the loop keeps its period, the head holding: a stalled
+loop would trip the servos' bus watchdog.
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ from kinematics import forward_kinematics
 from kinematics.camera import CameraIntrinsics
 from kinematics.geometry import HeadGeometry
 
+from ..background import DelayedResult
 from ..slam.head_motion_start import HeadMotionResult, HeadMotionSettings, HeadMotionStart, baseline_m
 from ..slam.natural_start import StartWait
-from ..slam.corners import grey
+from ..slam.corners import grey, grey8
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,13 @@ class HeadMotionPlan:
     arrive_rad: float = math.radians(0.2)
     points: HeadMotionSettings = field(default_factory=HeadMotionSettings)
 
+
+#: Loop time, s, after which a robot whose clock waits for the loop (the twin) takes the start's
+#: solve; hardware takes it at the first period after it is done.
+SOLVE_DELAY_S = 0.5
+
+#: Frames, at most, kept while the start is solved (grey, 0.3 MB each at 640 x 480).
+MAX_BACKLOG = 150
 
 #: The motion's corners in (elevation, pan), in units of the amplitude: each diagonal of the box
 #: twice there and back, then home. Both joints reverse at (nearly) every corner, so the motion
@@ -85,11 +95,18 @@ class HeadMotionPhase:
     """Steps the start: ``step`` each period until it returns a :class:`HeadMotionResult`.
 
     head, camera : the robot's. q0 : (3,) the encoders at the first period. plan : the motion.
-    Raises ValueError at once when the head's camera centre does not move in the planned motion
-    (no baseline). ``said`` : what the phase has told the person, in order (time, text).
+    clock_waits : the robot's clock stands still while the loop works (the twin: the solve is
+    taken :data:`SOLVE_DELAY_S` of loop time after it was asked for, so a run does not depend on
+    the threads' timing). Raises ValueError at once when the head's camera centre does not move
+    in the planned motion (no baseline). ``said`` : what the phase has told the person, in order
+    (time, text). ``solving_at`` : the time, s, of the frame the start is being solved at (None
+    when no solve is in flight). ``frame`` : once the start is made, that image and its time, a
+    few periods before the one ``step`` returns the start in; ``backlog`` : the frames (grey
+    uint8, time) seen since, which SLAM must go through to reach the present.
     """
 
-    def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, q0, plan: HeadMotionPlan = HeadMotionPlan()):
+    def __init__(self, head: HeadGeometry, camera: CameraIntrinsics, q0, plan: HeadMotionPlan = HeadMotionPlan(),
+                 clock_waits: bool = False):
         base = plan_baseline_m(head, q0, plan.amplitude_rad)
         if base < plan.points.min_baseline_m:
             raise ValueError(f"--start head-motion: this head's camera centre moves only {1e3 * base:.1f} mm in a "
@@ -105,6 +122,10 @@ class HeadMotionPhase:
         self._t_end = 0.0
         self._estimator: HeadMotionStart | None = None
         self._R_world_cam0 = np.eye(3)
+        self._solve = DelayedResult("head-motion-start", SOLVE_DELAY_S, clock_waits)
+        self.frame: tuple[np.ndarray, float] | None = None
+        self.solving_at: float | None = None
+        self.backlog: list[tuple[np.ndarray, float]] = []
 
     def _say(self, t: float, text: str) -> None:
         if not self.said or self.said[-1][1] != text:
@@ -129,7 +150,7 @@ class HeadMotionPhase:
 
     def step(self, obs, ctl) -> HeadMotionResult | None:
         """One period: the observation, the gaze controller to drive (its ``slave`` mode). The
-        result, when it comes, is the start at this observation's image."""
+        result, when it comes, is the start at the image in :attr:`frame`."""
         rows = obs.imu.rows()
         if len(rows):
             self._imu.append(rows)
@@ -169,7 +190,7 @@ class HeadMotionPhase:
             self.state = "moving"
             self._say(t, "head-motion start: the head turns to fix the map's scale; keep still")
             return None
-        if obs.fresh_image and obs.image is not None:
+        if obs.fresh_image and obs.image is not None and self.state in ("moving", "settling"):
             self._add(obs)
         if self.state == "moving":
             if np.abs(ctl.filter.q - self.path[self._k]).max() < self.plan.arrive_rad:
@@ -182,12 +203,30 @@ class HeadMotionPhase:
             return None
         if self.state == "settling" and t - self._t_end >= self.plan.settle_s and obs.fresh_image \
                 and obs.image is not None:
-            r = self._estimator.solve(self._R_world_cam0, self.imu_rows if self._imu else None)
+            # The frames end here: the worker owns the estimator until it answers.
+            self._solve.submit(t, self._estimator.solve, self._R_world_cam0, self.imu_rows if self._imu else None,
+                               context=(np.array(obs.image), t))
+            self.state, self.solving_at, self.backlog = "solving", t, []
+            self._say(t, "head-motion start: solving for the map (keep still)")
+            return None
+        if self.state == "solving":
+            ctl.hold()
+            if obs.fresh_image and obs.image is not None:
+                # SLAM goes through these once the start is made; past the cap, every other
+                # one is dropped, so a slow solve costs frame rate, not memory.
+                if len(self.backlog) >= MAX_BACKLOG:
+                    self.backlog = self.backlog[1::2]
+                self.backlog.append((grey8(obs.image), t))
+            got = self._solve.collect(t)
+            if got is None:
+                return None
+            r, frame = got
+            self.solving_at = None
             if isinstance(r, StartWait):
                 self._say(t, f"head-motion start: no start ({r.reason}); trying again")
                 self.state, self._imu = "waiting", []
                 return None
-            self.state = "done"
+            self.state, self.frame = "done", frame
             self._say(t, f"head-motion start: SLAM started metric from {len(r.start.xyz)} points (camera moved "
                          f"{1e3 * r.baseline_m:.0f} mm, wearer drift {1e3 * r.drift_m:.1f} mm, "
                          f"{r.rms_px:.2f} px RMS)")
@@ -199,4 +238,5 @@ class HeadMotionPhase:
         self._estimator.add(grey(obs.image), float(obs.t), T_mount_cam)
 
 
-__all__ = ["CORNERS", "HeadMotionPhase", "HeadMotionPlan", "level_attitude", "plan_baseline_m", "waypoints"]
+__all__ = ["CORNERS", "MAX_BACKLOG", "SOLVE_DELAY_S", "HeadMotionPhase", "HeadMotionPlan", "level_attitude",
+           "plan_baseline_m", "waypoints"]

@@ -63,6 +63,8 @@ class HeadMotionSettings:
         gyro's turn where there is one (1: a constant rate, what the calibration left of its bias).
     gyro_calibration_knot_s : the knot spacing, s, of the spline that takes the wearer's turn
         when the gyro is calibrated against the encoders (:func:`calibrate_to_encoders`).
+    gyro_bias_sigma : the standard deviation, rad/s per axis, SLAM gives the bias that calibration
+        found (its start's gyro bias).
     drift_sigma_m, drift_sigma_rad : the prior on each coefficient (m, rad over the motion).
     max_drift_m : a solved drift above this means the wearer moved: the start is refused.
     min_baseline_m : the camera's centre must move at least this far in the motion.
@@ -84,6 +86,7 @@ class HeadMotionSettings:
     rotation_order: int = 4
     gyro_rotation_order: int = 1
     gyro_calibration_knot_s: float = 1.0
+    gyro_bias_sigma: float = 0.002
     drift_sigma_m: float = 0.002
     drift_sigma_rad: float = math.radians(3.0)
     max_drift_m: float = 0.03
@@ -496,7 +499,7 @@ class HeadMotionStart:
         fi, k, xy = fi[good], k[good], xy[good]
         t = np.array(self._t)
         tau = (t - t[0]) / max(t[-1] - t[0], 1e-9)
-        R_gyro, rot_order = None, s.rotation_order
+        R_gyro, rot_order, bias = None, s.rotation_order, None
         if gyro_rows is not None and len(gyro_rows) >= 2:
             gyro = GyroTurns(gyro_rows, t[0])
             E, delta, bias, _ = calibrate_to_encoders(gyro, t, M, s.gyro_calibration_knot_s)
@@ -557,7 +560,8 @@ class HeadMotionStart:
         T_world_cam0[:3, :3] = R_world_cam0
         R = np.asarray(R_world_cam0, float)
         ns = NaturalStart(frame=self.frames - 1, uv=last[ok], xyz=X[ok] @ R.T, xyz_cov=R[None] @ cov @ R.T[None],
-                          scale="head-motion", T_world_cam=T_world_cam0 @ T[-1])
+                          scale="head-motion", T_world_cam=T_world_cam0 @ T[-1], gyro_bias=bias,
+                          gyro_bias_sigma=s.gyro_bias_sigma)
         return HeadMotionResult(ns, uv[0, cols][ok], T_world_cam0, T, base, drift_m, drift_rad, rms_px, len(cols))
 
 

@@ -78,6 +78,9 @@ class NaturalStart:
         for a depth start).
     T_world_cam : (4, 4) the camera's pose at that frame; None: the world is its frame (the
         head-motion start's world is the motion's first camera, levelled).
+    gyro_bias : (3,) the gyro's bias, camera frame, rad/s, where the start found it (the head-motion
+        start, against the encoders), and gyro_bias_sigma its standard deviation per axis; None:
+        SLAM takes it from a still stretch before the start, if any.
     """
 
     frame: int
@@ -87,6 +90,8 @@ class NaturalStart:
     scale: str
     v_world: np.ndarray = field(default_factory=lambda: np.zeros(3))
     T_world_cam: np.ndarray | None = None
+    gyro_bias: np.ndarray | None = None
+    gyro_bias_sigma: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,7 @@ from .records import FrameStats, MapView, SearchView, TrackingStatus
 from .appearance import extract_template
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, print_contrast, start_hypotheses
 from .filter import FeatureNotMeasurable
-from .state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
+from .state import BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
 from .appearance import first_view_patch, patch_half
 from .map_feature import MapFeature
 from .track import Track
@@ -213,9 +213,10 @@ class MonoSLAM:
             search=tr.last)
 
     # -------------------------------------------------------------- start-up
-    def _camera_state(self, hyp: PoseHypothesis, t: float) -> State:
+    def _camera_state(self, hyp: PoseHypothesis, t: float, gyro_bias=None, gyro_bias_sigma: float = 0.0) -> State:
         """A state of the camera alone at the start-up pose ``hyp``; with bias states, the biases
-        a still stretch before the first frame gave (kept in ``still``)."""
+        a still stretch before the first frame gave (kept in ``still``), the gyro's replaced by
+        ``gyro_bias`` (3,) rad/s with standard deviation ``gyro_bias_sigma`` where a start gives it."""
         q = quat_from_rotation(hyp.R_world_cam)
         still = None
         if self.cam_dim >= CAMERA_DIM_BIASED:
@@ -224,6 +225,13 @@ class MonoSLAM:
                 self.still = still
         x_v, P = camera_prior(self.cam_dim, hyp.r, q, pose_covariance(q, hyp.cov), self.settings.startup.init_sigma_v,
                               self.settings.startup.init_sigma_w, self.cfg, still)
+        if gyro_bias is not None and self.cam_dim >= CAMERA_DIM_BIASED:
+            # A start's own bias (fitted through its motion) over a still stretch's mean rate: a
+            # still wearer's sway turns the camera by a degree a second, which that mean takes in.
+            x_v[BG_SLICE] = gyro_bias
+            P[BG_SLICE, :] = 0.0
+            P[:, BG_SLICE] = 0.0
+            P[BG_SLICE, BG_SLICE] = np.eye(3) * gyro_bias_sigma**2
         return State.from_camera(x_v, P)
 
     def restart_camera(self, state: State, hyp: PoseHypothesis, w: np.ndarray | None = None) -> None:
@@ -285,7 +293,7 @@ class MonoSLAM:
         T = np.eye(4) if ns.T_world_cam is None else np.asarray(ns.T_world_cam, float)
         R_wc, r = T[:3, :3].copy(), T[:3, 3].copy()
         hyp = PoseHypothesis(R_wc, r, np.zeros((6, 6)), 0.0, 0.0)
-        state = self._camera_state(hyp, t)
+        state = self._camera_state(hyp, t, ns.gyro_bias, ns.gyro_bias_sigma)
         state.x[7:10] = ns.v_world
         ph = patch_half(self.template_px)
         feats = []

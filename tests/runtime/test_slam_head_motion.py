@@ -6,6 +6,9 @@ as a still wearer's does; the start's points must lie on the plane at its true d
 """
 
 import math
+import threading
+import time
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -15,10 +18,13 @@ from scipy.spatial.transform import Rotation
 from kinematics import forward_kinematics
 from kinematics.camera import default_camera
 from kinematics.geometry import reference_head
-from runtime.apps.head_motion import CORNERS, HeadMotionPhase, HeadMotionPlan, level_attitude, waypoints
+from runtime.apps.head_motion import (CORNERS, MAX_BACKLOG, SOLVE_DELAY_S, HeadMotionPhase, HeadMotionPlan,
+                                      level_attitude, waypoints)
 from runtime.slam.head_motion_start import (GyroTurns, HeadMotionSettings, HeadMotionStart, calibrate_to_encoders,
                                              point_at_pixel)
-from runtime.slam.natural_start import StartWait
+from runtime.slam.natural_start import NaturalStart, StartWait
+from runtime.slam.state import BG_SLICE
+from runtime.slam.system import MonoSLAM
 
 CAM = default_camera()
 K = np.array([[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1.0]])
@@ -163,6 +169,30 @@ def test_points_land_on_the_plane_at_its_true_distance(drifting):
     sd = np.sqrt(np.einsum("ni,nij,nj->n", u, r.start.xyz_cov, u))
     err = np.linalg.norm(X, axis=1) - depth_true
     assert np.mean(np.abs(err) < 3 * sd) > 0.8
+    # SLAM is handed the gyro's bias the calibration found.
+    assert np.abs(r.start.gyro_bias - GYRO_BIAS).max() < 1e-3 and r.start.gyro_bias_sigma > 0
+
+
+def test_slam_takes_the_starts_gyro_bias_over_a_still_stretchs_mean_rate(drifting):
+    """A still wearer's sway turns the camera by a degree a second: the mean rate of the still
+    stretch before the start takes that in as bias; a start that found the bias gives its own."""
+    frames, t, M, T_c0, rows = drifting
+    sway = np.array([0.02, 0.0, -0.01])
+    ts = np.arange(0.0, 0.6, 0.005)
+    imu = np.column_stack([ts, np.tile(GYRO_BIAS + sway, (len(ts), 1)), np.tile([0.0, -9.81, 0.0], (len(ts), 1))])
+    uv = np.array([[u, v] for u in range(80, 600, 60) for v in range(80, 420, 60)], float)
+    xy = np.column_stack([(uv[:, 0] - CAM.cx) / CAM.fx, (uv[:, 1] - CAM.cy) / CAM.fy])
+    xyz = np.column_stack([xy, np.ones(len(xy))])
+    cov = np.tile(np.eye(3) * 1e-4, (len(uv), 1, 1))
+    image = frames[-1]
+    for given, want in ((None, GYRO_BIAS + sway), (GYRO_BIAS, GYRO_BIAS)):
+        slam = MonoSLAM(CAM, imu=True)
+        slam.add_imu(imu)
+        ns = NaturalStart(0, uv, xyz, cov, "head-motion", gyro_bias=given, gyro_bias_sigma=0.002)
+        slam.start_natural(image, 0.6, ns)
+        state = slam.state
+        np.testing.assert_allclose(state.b_g, want, atol=1e-9)
+    np.testing.assert_allclose(np.diag(state.P)[BG_SLICE], 0.002**2)
 
 
 def test_the_gyro_is_calibrated_against_the_encoders(drifting):
@@ -285,6 +315,73 @@ def test_a_moving_wearer_is_waited_for_and_told():
         phase.step(_Obs(t, np.zeros(3), rows, img), ctl)
     assert phase.state == "moving"
     assert np.allclose(ctl.modes[-1][1], waypoints(reference_head(), np.zeros(3), HeadMotionPlan().amplitude_rad)[0])
+
+
+def _to_solving(phase, ctl, img, t0=0.0):
+    """Periods of a still wearer, the head reaching each waypoint a period after it is commanded,
+    until the phase asks for its solve; the next period's time."""
+    for k in range(400):
+        t = t0 + k / 30
+        ts = t - 1 / 30 + np.arange(1, 7) / 200
+        rows = np.column_stack([ts, np.zeros((6, 3)), np.tile([0, -9.81, 0], (6, 1))])
+        assert phase.step(_Obs(t, np.zeros(3), rows, img), ctl) is None
+        if ctl.modes and ctl.modes[-1] != "hold":
+            ctl.filter.q = ctl.modes[-1][1]
+        if phase.state == "solving":
+            return t + 1 / 30
+    raise AssertionError(f"the phase never asked for its solve (state {phase.state})")
+
+
+def _fake_result():
+    return SimpleNamespace(start=SimpleNamespace(xyz=np.zeros((30, 3))), baseline_m=0.012, drift_m=0.004, rms_px=0.5)
+
+
+def test_the_solve_runs_beside_the_loop(monkeypatch):
+    """On hardware the loop keeps its period while the start is solved, the head holding (a
+    stalled loop trips the servos' bus watchdog); the start comes at the first period after the
+    solve is done, made at the frame it was asked at."""
+    release, blocked = threading.Event(), []
+
+    def slow_solve(self, R_world_cam0=None, gyro_rows=None):
+        if not release.wait(20):
+            blocked.append(True)            # the loop waited for the solve instead of going on
+        return _fake_result()
+
+    monkeypatch.setattr(HeadMotionStart, "solve", slow_solve)
+    phase, ctl = HeadMotionPhase(reference_head(), CAM, np.zeros(3), clock_waits=False), _Ctl()
+    img = np.full((CAM.height, CAM.width, 3), 100, np.uint8)
+    t = _to_solving(phase, ctl, img)
+    t_asked = phase.solving_at
+    for k in range(60):                     # two seconds of periods while the solve is out
+        assert phase.step(_Obs(t + k / 30, np.zeros(3), np.zeros((0, 7)), img), ctl) is None
+    assert not blocked and phase.state == "solving" and ctl.modes[-1] == "hold"
+    release.set()
+    r, k, give_up = None, 60, time.monotonic() + 30.0
+    while r is None and time.monotonic() < give_up:        # the worker's own pace, not the loop's
+        r = phase.step(_Obs(t + k / 30, np.zeros(3), np.zeros((0, 7)), img), ctl)
+        k += 1
+        time.sleep(0.005)
+    assert r is not None and not blocked
+    assert phase.frame[1] == t_asked and phase.state == "done" and phase.solving_at is None
+    # The frames seen while it was solved are kept for SLAM to go through, grey, in order, and
+    # at most MAX_BACKLOG of them however long the solve took.
+    times = np.array([t_b for _, t_b in phase.backlog])
+    assert 0 < len(times) <= MAX_BACKLOG and times[0] > t_asked and np.all(np.diff(times) > 0)
+    assert phase.backlog[0][0].shape == (CAM.height, CAM.width) and phase.backlog[0][0].dtype == np.uint8
+
+
+def test_on_the_twin_the_solve_is_taken_a_fixed_loop_time_later(monkeypatch):
+    monkeypatch.setattr(HeadMotionStart, "solve", lambda self, R=None, rows=None: _fake_result())
+    phase, ctl = HeadMotionPhase(reference_head(), CAM, np.zeros(3), clock_waits=True), _Ctl()
+    img = np.full((CAM.height, CAM.width, 3), 100, np.uint8)
+    t = _to_solving(phase, ctl, img)
+    t_asked = phase.solving_at
+    for k in range(100):
+        r = phase.step(_Obs(t + k / 30, np.zeros(3), np.zeros((0, 7)), img), ctl)
+        if r is not None:
+            break
+    assert r is not None
+    assert SOLVE_DELAY_S <= t + k / 30 - t_asked < SOLVE_DELAY_S + 1 / 30 + 1e-9
 
 
 def test_level_attitude_puts_gravity_down():
