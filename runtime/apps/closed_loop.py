@@ -660,12 +660,13 @@ class ClosedLoop:
             image, t_start = phase.frame
             slam.start_natural(image, t_start, r.start)
             self._fill_pose(t_start)
+            # The backlog ends with this period's frame.
             self.start_result, self._catch_up = r, deque(phase.backlog)
         else:
             self.ctl.hold()
             slam.add_imu(obs.imu.rows())
-        if obs.fresh_image:
-            self._catch_up.append((obs.image, obs.t))
+            if obs.fresh_image:
+                self._catch_up.append((obs.image, obs.t))
         for _ in range(CATCH_UP_PER_PERIOD):
             if not self._catch_up:
                 break

@@ -32,6 +32,7 @@ def test_a_still_wearer_gets_a_metric_map_from_the_heads_motion(tmp_path):
     assert s["task_start_s"] - s["slam_start_s"] > 0.3
     frames = json.loads((out / "slam_stats.json").read_text())["frames"]
     assert sum(f["imu"] for f in frames) > 0.9 * len(frames)        # the IMU drives SLAM's prediction
+    assert np.all(np.diff([f["t"] for f in frames]) > 0)              # each frame once, in order
     assert abs(est.t[0] - gt.t[0] - s["slam_start_s"]) < 1e-6 and np.diff(est.t).max() < 1.5 / 30
     said = [e["text"] for e in s["events"] if e["event"] == "start"]
     assert any("SLAM started metric" in t for t in said)
