@@ -371,8 +371,8 @@ class ClosedLoop:
             self.start_target = self.start_target(obs)
         if self.task.uses_slam or self.task.start == "head-motion" or self.start_target is not None:
             # Camera only (slam_imu False): the IMU is still read by the head-motion start.
-            map_settings = MapSettings() if self.task.slam_imu else replace(MapSettings(), use_imu=False)
-            self.slam = MonoSLAM(self.info.camera, slam_config(self.info), map_settings, imu=self.task.slam_imu)
+            self.slam = MonoSLAM(self.info.camera, slam_config(self.info),
+                                 replace(MapSettings(), use_imu=self.task.slam_imu), imu=True)
             if self.task.start == "head-motion":
                 self.head_start = HeadMotionPhase(self.info.head, self.info.camera, obs.q,
                                                   clock_waits=self.info.clock_waits)

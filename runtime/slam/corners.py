@@ -14,15 +14,14 @@ from .appearance import TEMPLATE_SIZE, extract_template
 HALF_RESOLUTION_FROM_WIDTH = 320
 
 
+def grey8(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 grey image from grey or RGB uint8 (a quarter the size of :func:`grey`'s)."""
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
 def grey(image: np.ndarray) -> np.ndarray:
     """(H, W) float32 grey image from grey or RGB uint8."""
-    g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    return g.astype(np.float32)
-
-
-def grey8(image: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 grey image from grey or RGB uint8: what :func:`grey` makes, a quarter the size."""
-    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return grey8(image).astype(np.float32)
 
 
 def find_new_corners(image_grey: np.ndarray, occupied_uv: np.ndarray, n: int, min_distance: float = 30.0,

@@ -19,7 +19,7 @@ def pose_covariance(q: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w: float, cfg=None,
-                 still=None) -> tuple[np.ndarray, np.ndarray]:
+                 still=None, gyro_bias=None, gyro_bias_sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The camera block (cam_dim,) at rest at position ``r`` (3,) (world, m) and attitude ``q``
     (4,) (w x y z), and its covariance (cam_dim, cam_dim): ``P_pose`` (7, 7) on (r, q),
     velocities with standard deviations ``sigma_v`` (m/s) and ``sigma_w`` (rad/s).
@@ -28,8 +28,9 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
     (``gyro_bias_sigma0``, ``accel_bias_sigma0``, ``time_offset0``, ``time_offset_sigma0``);
     with ``still`` (inertial.StillBiases, made at ``q``) the biases a still stretch gave, the
     accelerometer's correlated with the attitude it was read through (as a new feature is with
-    the camera), so that refining the attitude refines it. Without ``cfg`` the bias entries are
-    left zero."""
+    the camera), so that refining the attitude refines it; with ``gyro_bias`` (3,) rad/s, a start's
+    own estimate of the gyro's bias with standard deviation ``gyro_bias_sigma``, that one for the
+    gyro's. Without ``cfg`` the bias entries are left zero."""
     cam_dim = check_camera_dim(cam_dim)
     x_v = np.zeros(cam_dim)
     x_v[0:3], x_v[3:7] = r, q
@@ -54,6 +55,10 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
         P[BA_SLICE, :] = P_ax
         P[:, BA_SLICE] = P_ax.T
         P[BA_SLICE, BA_SLICE] = J @ P_ax.T + np.eye(3) * still.var_f
+    if gyro_bias is not None:
+        # Over a still stretch's mean rate: a still wearer's sway turns the camera by a degree a
+        # second, which that mean takes in (the gyro's bias has no cross-covariance here).
+        x_v[BG_SLICE], P[BG_SLICE, BG_SLICE] = gyro_bias, np.eye(3) * gyro_bias_sigma**2
     return x_v, P
 
 

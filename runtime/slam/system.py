@@ -65,7 +65,7 @@ from .records import FrameStats, MapView, SearchView, TrackingStatus
 from .appearance import extract_template
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, print_contrast, start_hypotheses
 from .filter import FeatureNotMeasurable
-from .state import BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
+from .state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
 from .appearance import first_view_patch, patch_half
 from .map_feature import MapFeature
 from .track import Track
@@ -224,14 +224,7 @@ class MonoSLAM:
             if still is not None:
                 self.still = still
         x_v, P = camera_prior(self.cam_dim, hyp.r, q, pose_covariance(q, hyp.cov), self.settings.startup.init_sigma_v,
-                              self.settings.startup.init_sigma_w, self.cfg, still)
-        if gyro_bias is not None and self.cam_dim >= CAMERA_DIM_BIASED:
-            # A start's own bias (fitted through its motion) over a still stretch's mean rate: a
-            # still wearer's sway turns the camera by a degree a second, which that mean takes in.
-            x_v[BG_SLICE] = gyro_bias
-            P[BG_SLICE, :] = 0.0
-            P[:, BG_SLICE] = 0.0
-            P[BG_SLICE, BG_SLICE] = np.eye(3) * gyro_bias_sigma**2
+                              self.settings.startup.init_sigma_w, self.cfg, still, gyro_bias, gyro_bias_sigma)
         return State.from_camera(x_v, P)
 
     def restart_camera(self, state: State, hyp: PoseHypothesis, w: np.ndarray | None = None) -> None:
