@@ -515,7 +515,7 @@ def _default_alignment(result: Path) -> str:
 
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
-    from runtime.datasets import dataset_kind, open_any
+    from runtime.datasets import dataset_kind, open_any, shipped_camera
     from runtime.sequence import open_sequence, read_trajectory
     from runtime.eval import trajectory_errors
 
@@ -525,7 +525,11 @@ def cmd_eval(args) -> int:
     check_complete(result, "SLAM result")
     # EuRoC and KITTI as wvr slam reads them; ours (and TUM RGB-D) by the reader that skips and
     # counts an unreadable depth image instead of refusing the sequence.
-    seq = open_sequence(args.seq) if dataset_kind(args.seq) == "tum" else open_any(args.seq)
+    if dataset_kind(args.seq) == "tum":
+        fr = shipped_camera(args.seq)       # a TUM RGB-D folder as shipped: its published camera
+        seq = open_sequence(args.seq, camera=fr[1] if fr else None)
+    else:
+        seq = open_any(args.seq)
     if seq.groundtruth is None:
         raise ValueError(f"{args.seq}: no ground truth to evaluate against (groundtruth.txt; EuRoC's "
                          f"state_groundtruth_estimate0; KITTI's poses/NN.txt)")

@@ -3,7 +3,8 @@
 - :mod:`.euroc`: EuRoC / ASL ``mav0/`` folders (cam0, imu0 through the camera-IMU extrinsics,
   the body's ground truth made the camera's), nanosecond stamps kept exact.
 - :mod:`.kitti`: KITTI odometry sequences (image_0/, times.txt, calib.txt's P0, poses/NN.txt).
-- :mod:`.tum`: our own (TUM RGB-D) layout, with checked 16-bit depth images.
+- :mod:`.tum`: our own (TUM RGB-D) layout, with checked 16-bit depth images; a TUM RGB-D folder as
+  shipped (no camera.toml) takes its Freiburg camera's published calibration.
 
 :func:`open_any` recognises each and returns a :class:`DatasetSequence` (a
 :class:`runtime.sequence.Sequence`, so ``wvr slam`` runs on it directly); ``convert_euroc`` and
@@ -17,10 +18,10 @@ from pathlib import Path
 from .common import DatasetSequence, ns_to_seconds, ns_to_text, read_stamps_ns
 from .euroc import convert_euroc, find_mav0, open_euroc
 from .kitti import convert_kitti, is_kitti, open_kitti
-from .tum import check_depth_png, open_tum, read_depth
+from .tum import FREIBURG_CAMERAS, check_depth_png, freiburg_camera, open_tum, read_depth, shipped_camera
 
 __all__ = ["DatasetSequence", "open_any", "dataset_kind", "open_euroc", "open_kitti", "open_tum", "convert_euroc",
-           "convert_kitti", "read_depth", "check_depth_png", "read_stamps_ns", "ns_to_text", "ns_to_seconds"]
+           "convert_kitti", "read_depth", "check_depth_png", "FREIBURG_CAMERAS", "freiburg_camera", "shipped_camera", "read_stamps_ns", "ns_to_text", "ns_to_seconds"]
 
 
 def dataset_kind(path: str | Path) -> str:

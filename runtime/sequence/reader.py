@@ -141,9 +141,13 @@ class Sequence:
             yield self.frame(i)
 
 
-def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
+def open_sequence(path: str | Path, allow_incomplete: bool = False,
+                  camera: CameraIntrinsics | None = None) -> Sequence:
     """Open a sequence folder: rgb.txt and camera.toml (required) and the optional
     target.toml, groundtruth.txt, imu.txt, joints.txt and depth.txt.
+
+    ``camera``: the camera to use when the folder has no camera.toml (a public data set's
+    published calibration, runtime.datasets.tum); a camera.toml in the folder comes first.
 
     Images are not read here (see :meth:`Sequence.frames`). File errors raise SequenceError,
     except camera.toml's, which raise kinematics.camera.CameraFileError naming the file.
@@ -161,14 +165,17 @@ def open_sequence(path: str | Path, allow_incomplete: bool = False) -> Sequence:
         except OutputFolderError as e:
             raise SequenceError(str(e)) from None
     cam_path = root / "camera.toml"
-    if not cam_path.is_file():
+    if cam_path.is_file():
+        # One read: the lens for the camera, and the depth images' units per metre (the camera's
+        # reader has checked depth_scale, and leaves it out of the lens).
+        doc = read_toml(cam_path, CameraFileError, "the path of a camera.toml")
+        camera = CameraIntrinsics.from_dict(doc, source=str(cam_path))
+        depth_scale = float(doc["camera"].get("depth_scale", DEPTH_SCALE))
+    elif camera is not None:
+        depth_scale = DEPTH_SCALE
+    else:
         raise SequenceError(f"{cam_path}: missing; every sequence needs a camera.toml with a [camera] "
                             f"table (width, height, fx, fy, cx, cy; {_SEQUENCE_FILES})")
-    # One read: the lens for the camera, and the depth images' units per metre (the camera's
-    # reader has checked depth_scale, and leaves it out of the lens).
-    doc = read_toml(cam_path, CameraFileError, "the path of a camera.toml")
-    camera = CameraIntrinsics.from_dict(doc, source=str(cam_path))
-    depth_scale = float(doc["camera"].get("depth_scale", DEPTH_SCALE))
     times, paths = _read_rgb_list(root / "rgb.txt")
 
     def optional(name, reader):

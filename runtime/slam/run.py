@@ -271,6 +271,9 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     if len(seq) == 0:
         raise SequenceError(f"{seq.root}/rgb.txt lists no images; a sequence needs at least one frame")
     check_lens_invertible(seq.camera)
+    if progress:
+        for note in seq.notes:
+            print(f"slam: note: {note}")
     saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
     natural = saved is None and seq.target is None
     if natural and seq.imu is not None and settings.imu.use_imu:

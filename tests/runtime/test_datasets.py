@@ -354,6 +354,78 @@ def test_tum_depth_associated_by_nearest_time(tmp_path):
     assert open_sequence(tmp_path / "a").depth(0)[3, 3] == 10.0 and open_any(tmp_path / "a").depth(0)[3, 3] == 10.0
 
 
+# ------------------------------------------------------------------------------------- TUM as shipped
+
+def _tum_as_shipped(root, n=3, name="rgbd_dataset_freiburg1_xyz", header=True):
+    """A TUM RGB-D folder as the benchmark ships it: 640x480 colour PNGs, 16-bit depth at its own
+    stamps, the commented headers, the 100 Hz ground truth, accelerometer.txt and no camera.toml."""
+    root.mkdir()
+    (root / "rgb").mkdir()
+    (root / "depth").mkdir()
+    head = lambda what: f"# {what}\n# file: '{name}.bag'\n# timestamp filename\n" if header else ""  # noqa: E731
+    rgb, depth = [head("color images")], [head("depth maps")]
+    for i in range(n):
+        t = 1305031102.175304 + i / 30
+        cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), np.random.default_rng(i).integers(0, 256, (480, 640, 3),
+                                                                                          dtype=np.uint8))
+        cv2.imwrite(str(root / "depth" / f"{t - 0.015:.6f}.png"), np.full((480, 640), 5000 * (i + 1), np.uint16))
+        rgb.append(f"{t:.6f} rgb/{t:.6f}.png\n")
+        depth.append(f"{t - 0.015:.6f} depth/{t - 0.015:.6f}.png\n")
+    (root / "rgb.txt").write_text("".join(rgb))
+    (root / "depth.txt").write_text("".join(depth))
+    gt = [f"{1305031102.17 + k / 100:.4f} {0.01 * k:.4f} 0 0 0 0 0 1\n" for k in range(12)]
+    (root / "groundtruth.txt").write_text("# ground truth trajectory\n# timestamp tx ty tz qx qy qz qw\n" + "".join(gt))
+    (root / "accelerometer.txt").write_text("# accelerometer data\n1305031102.17 0.0 -9.81 0.0\n")
+    return root
+
+
+def test_tum_as_shipped_takes_its_freiburg_camera(tmp_path):
+    from runtime.datasets import FREIBURG_CAMERAS
+    from runtime.sequence import open_sequence
+
+    seq = open_any(_tum_as_shipped(tmp_path / "rec"))           # named by rgb.txt's header
+    assert seq.camera == FREIBURG_CAMERAS[1] and "Freiburg 1" in seq.notes[0]
+    assert len(seq) == 3 and seq.frame(2).image is not None and seq.depth(2)[240, 320] == 3.0
+    assert len(seq.groundtruth) == 12
+    # Named by the folder, as the benchmark's archives unpack; a camera.toml of the user's wins.
+    seq2 = open_any(_tum_as_shipped(tmp_path / "rgbd_dataset_freiburg3_long_office_household", header=False))
+    assert seq2.camera == FREIBURG_CAMERAS[3] and seq2.camera.k1 == 0.0
+    save_camera(CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0), tmp_path / "rec" / "camera.toml")
+    assert open_any(tmp_path / "rec").camera.fx == 500.0 and open_any(tmp_path / "rec").notes == ()
+    assert open_sequence(tmp_path / "rec").camera.fx == 500.0
+
+
+def test_freiburg_cameras_undistort_as_opencv(tmp_path):
+    # The published terms are OpenCV's d0..d4 (k1 k2 p1 p2 k3): our lens inverts as OpenCV does.
+    from kinematics.camera import undistort
+    from runtime.datasets import FREIBURG_CAMERAS
+
+    uv = np.array([[0.0, 0.0], [639.0, 0.0], [0.0, 479.0], [639.0, 479.0], [100.0, 300.0], [320.0, 240.0]])
+    for cam in FREIBURG_CAMERAS.values():
+        K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+        d = np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3])
+        cv = cv2.undistortPoints(uv[:, None], K, d, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+                                                                100, 1e-12))[:, 0]
+        assert np.allclose(undistort(cam, uv), cv, atol=1e-6)
+
+
+def test_cli_eval_and_slam_read_tum_as_shipped(tmp_path, capsys):
+    seq = _tum_as_shipped(tmp_path / "rgbd_dataset_freiburg2_xyz", header=False)
+    res = tmp_path / "res"
+    res.mkdir()
+    write_trajectory(res / "trajectory.tum", np.array([1305031102.175304, 1305031102.208637]),
+                     np.stack([np.eye(4), np.eye(4)]))
+    rc, out = _run_cli(["eval", str(seq), str(res)], capsys)
+    assert rc == 0, out.err
+    assert "poses matched: 2 of 2" in out.out
+
+
+def test_tum_without_camera_toml_not_freiburg_is_refused(tmp_path, capsys):
+    seq = _tum_as_shipped(tmp_path / "my_recording", header=False)
+    line = _one_line_error(["slam", str(seq), "--out", str(tmp_path / "o")], capsys, "camera.toml", "freiburg")
+    assert "write a camera.toml" in line
+
+
 # ------------------------------------------------------------------------------------- bad input
 
 def _one_line_error(argv, capsys, *words):
