@@ -515,21 +515,17 @@ def _default_alignment(result: Path) -> str:
 
 def cmd_eval(args) -> int:
     from kinematics.outdir import check_complete
-    from runtime.datasets import dataset_kind, open_any, shipped_camera
-    from runtime.sequence import open_sequence, read_trajectory
+    from runtime.datasets import dataset_kind, open_any, open_tum
+    from runtime.sequence import read_trajectory
     from runtime.eval import trajectory_errors
 
     result = Path(args.result)
     if not result.is_dir():
         raise ValueError(f"{result}: not a folder; give the folder wvr slam wrote (with trajectory.tum)")
     check_complete(result, "SLAM result")
-    # EuRoC and KITTI as wvr slam reads them; ours (and TUM RGB-D) by the reader that skips and
-    # counts an unreadable depth image instead of refusing the sequence.
-    if dataset_kind(args.seq) == "tum":
-        fr = shipped_camera(args.seq)       # a TUM RGB-D folder as shipped: its published camera
-        seq = open_sequence(args.seq, camera=fr[1] if fr else None)
-    else:
-        seq = open_any(args.seq)
+    # As wvr slam reads them, but ours (and TUM RGB-D) with an unreadable depth image skipped and
+    # counted by the map's scoring instead of refusing the sequence.
+    seq = open_tum(args.seq, check_depth=False) if dataset_kind(args.seq) == "tum" else open_any(args.seq)
     if seq.groundtruth is None:
         raise ValueError(f"{args.seq}: no ground truth to evaluate against (groundtruth.txt; EuRoC's "
                          f"state_groundtruth_estimate0; KITTI's poses/NN.txt)")

@@ -18,10 +18,11 @@ from pathlib import Path
 from .common import DatasetSequence, ns_to_seconds, ns_to_text, read_stamps_ns
 from .euroc import convert_euroc, find_mav0, open_euroc
 from .kitti import convert_kitti, is_kitti, open_kitti
-from .tum import FREIBURG_CAMERAS, check_depth_png, freiburg_camera, open_tum, read_depth, shipped_camera
+from .tum import FREIBURG_CAMERAS, check_depth_png, freiburg_camera, open_tum, read_depth
 
 __all__ = ["DatasetSequence", "open_any", "dataset_kind", "open_euroc", "open_kitti", "open_tum", "convert_euroc",
-           "convert_kitti", "read_depth", "check_depth_png", "FREIBURG_CAMERAS", "freiburg_camera", "shipped_camera", "read_stamps_ns", "ns_to_text", "ns_to_seconds"]
+           "convert_kitti", "read_depth", "check_depth_png", "FREIBURG_CAMERAS", "freiburg_camera", "read_stamps_ns",
+           "ns_to_text", "ns_to_seconds"]
 
 
 def dataset_kind(path: str | Path) -> str:

@@ -14,7 +14,7 @@ from runtime.sequence.types import SequenceError
 
 from .common import DatasetSequence, as_dataset_sequence, read_stamps_ns
 
-__all__ = ["FREIBURG_CAMERAS", "check_depth_png", "freiburg_camera", "open_tum", "read_depth", "shipped_camera"]
+__all__ = ["FREIBURG_CAMERAS", "check_depth_png", "freiburg_camera", "open_tum", "read_depth"]
 
 #: The colour cameras of the TUM RGB-D benchmark, as its site publishes them ("File formats",
 #: intrinsic calibration; the same values as ORB-SLAM's TUM1-3.yaml): 640x480, OpenCV's
@@ -49,30 +49,26 @@ def freiburg_camera(root: str | Path) -> tuple[int, CameraIntrinsics] | None:
     return (int(m.group(1)), FREIBURG_CAMERAS[int(m.group(1))]) if m else None
 
 
-def shipped_camera(root: str | Path) -> tuple[int, CameraIntrinsics] | None:
-    """:func:`freiburg_camera` for a folder without camera.toml (one it has comes first)."""
-    root = Path(root)
-    return freiburg_camera(root) if root.is_dir() and not (root / "camera.toml").is_file() else None
-
-
-def open_tum(path: str | Path) -> DatasetSequence:
+def open_tum(path: str | Path, check_depth: bool = True) -> DatasetSequence:
     """Open a sequence folder in our layout (runtime.sequence.open_sequence) with its exact
-    stamps, and check every depth image listed in depth.txt from its PNG header. A TUM RGB-D
-    folder as shipped (no camera.toml) takes its Freiburg camera's published calibration
+    stamps, and check every depth image listed in depth.txt from its PNG header (``check_depth``
+    False: leave a bad one to be skipped and counted where it is read, as scoring does). A TUM
+    RGB-D folder as shipped (no camera.toml) takes its Freiburg camera's published calibration
     (its ``notes`` say so); a camera.toml in the folder comes first."""
     root = Path(path)
-    fr = shipped_camera(root)
+    shipped = root.is_dir() and not (root / "camera.toml").is_file()
+    fr = freiburg_camera(root) if shipped else None
     try:
         seq = open_sequence(root, camera=fr[1] if fr else None)
     except SequenceError:
-        if fr is None and root.is_dir() and not (root / "camera.toml").is_file() and (root / "rgb.txt").is_file():
+        if shipped and fr is None and (root / "rgb.txt").is_file():
             raise SequenceError(f"{root / 'camera.toml'}: missing, and the folder is not a TUM RGB-D recording "
                                 f"whose camera is known (rgbd_dataset_freiburg1/2/3_...); write a camera.toml "
                                 f"with a [camera] table (width, height, fx, fy, cx, cy; see shared/formats.md)"
                                 ) from None
         raise
     stamps_ns = read_stamps_ns(seq.root / "rgb.txt")
-    if seq.depth_paths is not None:
+    if check_depth and seq.depth_paths is not None:
         for p in seq.depth_paths:
             check_depth_png(p, seq.camera)
     return as_dataset_sequence(seq, source="tum", stamps_ns=stamps_ns,
