@@ -409,7 +409,7 @@ def test_freiburg_cameras_undistort_as_opencv(tmp_path):
         assert np.allclose(undistort(cam, uv), cv, atol=1e-6)
 
 
-def test_cli_eval_and_slam_read_tum_as_shipped(tmp_path, capsys):
+def test_cli_eval_reads_tum_as_shipped(tmp_path, capsys):
     seq = _tum_as_shipped(tmp_path / "rgbd_dataset_freiburg2_xyz", header=False)
     res = tmp_path / "res"
     res.mkdir()
