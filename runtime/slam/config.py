@@ -346,8 +346,12 @@ class ViewSettings:
     view_noise_scale: float = 1.5        # (angle, range ratio) from its first view
     margin_px: float = 12.0
     match_score: float = 0.25            # zero-mean normalised SSD 2 (1 - ZNCC): ZNCC >= 0.875
-    max_search_area_px: int = 40_000     # an ellipse larger than this is not searched (px^2 at 640 px width,
-                                         # in proportion to the image's area above it)
+    # The search cap (px^2 at 640 px width, in proportion to the image's area above it). A feature
+    # is chosen while its 3-sigma ellipse's area is within it, and searched while the box around
+    # the ellipse is (what the search costs); one chosen whose box is over is not searched and
+    # counts as a failed search (FrameStats.outgrown), which prunes a feature whose region outgrows
+    # the search (choosing by the box instead measured worse: benchmarks/NOTES.md).
+    max_search_area_px: int = 40_000
 
 
 @dataclass(frozen=True)

@@ -58,12 +58,17 @@ class Measurement:
         # The rescue's guides may be larger (_rescue_guides).
         self.rescue_cap_px = max(self.search_cap_px, settings.measure.rescue_area_px * (cam.width / 640.0) ** 2)
         self.over_cap = 0           # guides the last search took over the search cap (select)
+        self.outgrown = 0           # features the last search chose and did not search (_match)
         self._rescue: np.ndarray | None = None   # those guides' indices into select's features
 
     def select(self, m: SlamMap) -> tuple[Prediction, np.ndarray, np.ndarray, int, np.ndarray]:
         """The features to measure this frame, their innovation covariances and noise (multiples
         of the pixel noise: (m,), or (m, 2, 2) shaped by each template's gradients with
-        ``aperture_noise``), how many are predicted visible, and their points (m, 3)."""
+        ``aperture_noise``), how many are predicted visible, and their points (m, 3).
+
+        A feature is searchable while its 3-sigma ellipse's area is within the search cap; the
+        search itself takes an ellipse while the box around it is (``_match``). One between the
+        two is chosen, not searched, and its search counts as failed (``outgrown``)."""
         s, cam = self.settings, self.cam
         state = m.state
         ks = np.arange(state.n_features)
@@ -145,6 +150,7 @@ class Measurement:
         found."""
         s = self.settings
         pred, S, r_scale, visible, Y = self.select(m)
+        self.outgrown = 0
         feats = [m.features[k] for k in pred.ks]
         warp = np.array([warped(s.warp, f) for f in feats], bool)
         rescue = self._rescue
@@ -168,10 +174,14 @@ class Measurement:
     def _match(self, g, m: SlamMap, feats: list, warp: np.ndarray, Y: np.ndarray, uv: np.ndarray,
                S: np.ndarray, max_area: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``feats``' matches in ``g`` searched in the ellipses (uv, S) (none larger than
-        ``max_area``, px^2; default the search cap): z (m, 2) NaN where not found, and found (m,)."""
+        ``max_area``, px^2; default the search cap): z (m, 2) NaN where not found, and found (m,).
+        An ellipse whose box is over ``max_area`` is not searched (search.search_kernel's test),
+        counted in ``outgrown``."""
         s = self.settings
-        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score,
-                                     self.search_cap_px if max_area is None else max_area)
+        cap = self.search_cap_px if max_area is None else max_area
+        half = 3.0 * np.sqrt(np.maximum(S[:, [0, 1], [0, 1]], 0.0))     # the box's half-sides, 3 sigma
+        self.outgrown += int(np.count_nonzero(np.prod(2 * half + 1, axis=1) > cap))
+        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score, cap)
         z[~found] = np.nan
         return z, found
 
@@ -210,18 +220,19 @@ class Measurement:
             # allow for (a fast turn's start or stop). The prediction's impulse is taken
             # retry_noise_gain times larger and the frame searched again in the grown ellipses,
             # kept if it finds more (after a long gap the grown ellipses can pass searching).
-            first, before = (pred, S, r_scale, visible, feats, z), m.state.snapshot(camera_only=True)
+            first, before = (pred, S, r_scale, visible, feats, z, self.outgrown), m.state.snapshot(camera_only=True)
             self._grow_impulse(m.state, motion_cfg, retry_dt, s.relocalisation.retry_noise_gain)
             pred, S, r_scale, visible, feats, z = self.search(g, m)
             if np.isfinite(z).all(axis=1).sum() > n_found:
                 st.retried = True
             else:
-                pred, S, r_scale, visible, feats, z = first
+                pred, S, r_scale, visible, feats, z, self.outgrown = first
                 m.state.restore(before)
             n = len(pred.ks)
         st.predicted = visible
         st.guided = self.guided
         st.over_cap = self.over_cap
+        st.outgrown = self.outgrown
         edged = self.known_by_edges(g, feats, z, pred.uv) if s.startup.known_edges else np.zeros(n, bool)
         for f in feats:
             f.attempts += 1

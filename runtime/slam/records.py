@@ -105,6 +105,7 @@ class FrameStats:
     relocalised: bool = False
     guided: int = 0               # features searched in regions narrowed by the first ones (guided.py)
     over_cap: int = 0             # guides searched over the search cap (measure.Measurement._rescue_guides)
+    outgrown: int = 0             # chosen, not searched: the ellipse's box over the search cap (a failed search)
     retried: bool = False         # searched again with a larger motion impulse (measure.Measurement.measure)
     onset: bool = False           # measured again with a turn's impulses (track.Track.step)
     sigma_a: float = 0.0          # the linear impulse the prediction took, m/s^2 (SlamConfig.impulses.adapt_sigma_a)

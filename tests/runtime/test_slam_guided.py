@@ -170,3 +170,43 @@ def test_a_frame_whose_ellipses_all_pass_the_cap_is_still_searched_and_matched()
         found = np.isfinite(z).all(axis=1)
         assert found.sum() >= 27
         np.testing.assert_allclose(z[found], truth[pred.ks[found]], atol=0.5)
+
+
+def test_an_ellipse_chosen_by_its_area_whose_box_passes_the_cap_is_not_searched_and_is_counted():
+    """The stated rule between the choice and the search: a feature is chosen while its 3-sigma
+    ellipse's area is within the search cap, and searched while the box around the ellipse is. A
+    thin ellipse at 45 degrees (a young feature's ray across the image) has a small area and a
+    large box: chosen, not searched, counted in ``outgrown``; the same shape shorter, and a round
+    one, are searched and found where they are."""
+    from dataclasses import replace
+
+    from kinematics.camera import default_camera
+    from runtime.slam.appearance.patch import extract_template
+    from runtime.slam.config import MapSettings
+    from runtime.slam.map_feature import MapFeature
+    from runtime.slam.measure import Measurement
+    from runtime.slam.views import SlamMap
+    from slam_testing import state_with_points, texture
+
+    cam, depth = default_camera(), 2.0
+    g = _plane_view(cam, texture(seed=5, size=1536, blur=2.0), 0.0)
+    uv = np.array([[200.0, 150.0], [420.0, 300.0], [320.0, 240.0]])
+    X = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx * depth, (uv[:, 1] - cam.cy) / cam.fy * depth,
+                         np.full(len(uv), depth)])
+    feats = [MapFeature(i, extract_template(g, p, 15), 0, np.zeros(3), last_seen=0) for i, p in enumerate(uv)]
+    m = SlamMap(state_with_points(np.eye(4), X), feats)
+    s = MapSettings()
+    cap = s.views.max_search_area_px
+    R45 = np.array([[1.0, -1.0], [1.0, 1.0]]) / np.sqrt(2.0)
+    thin = lambda major: R45 @ np.diag([major**2, 3.0**2]) @ R45.T     # noqa: E731
+    S = np.array([thin(60.0), thin(40.0), np.eye(2) * 3.0**2])
+    area = 9 * np.pi * np.sqrt(np.linalg.det(S))
+    box = np.prod(2 * 3 * np.sqrt(S[:, [0, 1], [0, 1]]) + 1, axis=1)
+    assert np.all(area <= cap) and box[0] > cap and box[1] <= cap       # the case as stated
+    pred_uv = uv + [[4.0, -3.0], [-5.0, -5.0], [2.0, 1.0]]               # predictions off the truth
+    ms = Measurement(cam, replace(s), 1.0, 0, None)
+    z, found = ms._match(g, m, feats, np.zeros(3, bool), X, pred_uv, S)
+    assert ms.outgrown == 1
+    assert not found[0] and np.isnan(z[0]).all()
+    assert found[1:].all()
+    np.testing.assert_allclose(z[1:], uv[1:], atol=0.5)
