@@ -212,8 +212,9 @@ class Renderer:
         self.rays = [unproject(cam, np.column_stack([uu.ravel() + du, vv.ravel() + dv])) for du, dv in offs]
         self.background = 90.0
 
-    def _shade(self, rays_cam, R_world_cam, r) -> np.ndarray:
-        d = rays_cam @ np.asarray(R_world_cam).T
+    def _nearest(self, d, r):
+        """(t, patch, a, b) of the nearest patch along each world ray ``d`` (n, 3) from ``r``: the
+        ray's length to it (inf: none), its index (-1: none) and the hit's patch coordinates, m."""
         n = d.shape[0]
         best = np.full(n, np.inf)
         who = np.full(n, -1)
@@ -232,6 +233,12 @@ class Renderer:
             inside = (a >= 0) & (a <= p.w) & (b >= 0) & (b <= p.h)
             idx, a, b = idx[inside], a[inside], b[inside]
             best[idx], who[idx], A[idx], B[idx] = t[idx], k, a, b
+        return best, who, A, B
+
+    def _shade(self, rays_cam, R_world_cam, r) -> np.ndarray:
+        d = rays_cam @ np.asarray(R_world_cam).T
+        n = d.shape[0]
+        _, who, A, B = self._nearest(d, r)
         val = np.full(n, self.background, np.float32)
         for k in np.unique(who[who >= 0]):
             p = self.scene.patches[k]
@@ -248,6 +255,20 @@ class Renderer:
         for rays, (R, r) in zip(self.rays, poses):
             acc += self._shade(rays, R, r)
         return (acc / len(self.rays)).reshape(self.cam.height, self.cam.width)
+
+
+    def depth(self, R_world_cam, r, rng: np.random.Generator | None = None) -> np.ndarray:
+        """(height, width) depth along the optic axis, m, at each pixel's centre (0: no surface),
+        as a structured-light sensor registered to this camera gives it: with ``rng``, its noise
+        (sigma_z = 1.45e-3 z^2, the Kinect's) and 1/5000 m steps."""
+        cam = self.cam
+        uu, vv = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+        rays = unproject(cam, np.column_stack([uu.ravel(), vv.ravel()]))
+        t, *_ = self._nearest(rays @ np.asarray(R_world_cam).T, r)
+        z = np.where(np.isfinite(t), t * rays[:, 2], 0.0)
+        if rng is not None:
+            z = np.where(z > 0, np.round((z + rng.normal(0.0, 1.45e-3 * z**2)) * 5000) / 5000, 0.0)
+        return z.reshape(cam.height, cam.width)
 
 
 # -- motions -----------------------------------------------------------------------------------

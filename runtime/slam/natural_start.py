@@ -12,8 +12,11 @@ a set of mapped points with their covariances) or a :class:`StartWait` that says
 - **two views** (:class:`TwoViewStart`): corners of a reference frame tracked with pyramidal
   Lucas-Kanade (forward-backward checked) until the views have enough parallax; the essential
   matrix (five-point RANSAC, OpenCV) gives the relative pose, the inliers are triangulated, and
-  the start is accepted only when most points are seen under a useful angle (ORB-SLAM's test:
-  a homography explaining the motion as well, a pure rotation or a too-short baseline, waits).
+  the start is accepted only when most points are seen under a useful angle. Where a homography
+  explains the matches as well (ORB-SLAM's R_H: most of the view on one plane, a desk, a wall,
+  a floor) the essential matrix is near-degenerate and its pose can be tens of degrees off, so
+  the pose is the homography's decomposition under which most points triangulate, when clearly
+  better than the next (ORB-SLAM's choice); a pure rotation or a too-short baseline waits.
   The scale is arbitrary (the points' median depth set to 1 m) unless the caller supplies it.
 
 The EKF then starts at the reference frame with its camera fixed (the gauge), the points as
@@ -202,6 +205,28 @@ class TwoViewGeometry:
     parallax_deg: np.ndarray
 
 
+#: A homography's best pose is taken when the next best triangulates fewer than this fraction
+#: of its points (ORB-SLAM's 0.75).
+PLANE_AMBIGUITY = 0.75
+#: ... and when the essential matrix's pose is within this rotation (deg; ten times it in the
+#: translation's direction) of it.
+AGREE_DEG = 1.0
+
+
+def _triangulated(R: np.ndarray, t: np.ndarray, xy_a: np.ndarray, xy_b: np.ndarray, cand: np.ndarray,
+                  s: StartSettings, fx: float):
+    """The matches ``cand`` (n,) bool triangulated under the pose ``R, t`` (t unit): (R, t, cand,
+    X (k, 3) in a's frame, ok (k,) in front of both views within max_reproj_px, parallax (k,) deg)."""
+    X = triangulate(R, t, xy_a[cand], xy_b[cand])
+    Xb = X @ R.T + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = (X[:, 2] > 0) & (Xb[:, 2] > 0)
+        err_a = np.linalg.norm(X[:, :2] / X[:, 2:3] - xy_a[cand], axis=1) * fx
+        err_b = np.linalg.norm(Xb[:, :2] / Xb[:, 2:3] - xy_b[cand], axis=1) * fx
+    ok &= (err_a < s.max_reproj_px) & (err_b < s.max_reproj_px)
+    return R, t, cand, X, ok, _parallax_deg(X, R, t)
+
+
 def two_view_geometry(cam: CameraIntrinsics, uv_a: np.ndarray, uv_b: np.ndarray,
                       settings: StartSettings = StartSettings()) -> TwoViewGeometry | StartWait:
     """The relative pose and points of two views from matched pixels (n, 2) each, or why not."""
@@ -216,24 +241,44 @@ def two_view_geometry(cam: CameraIntrinsics, uv_a: np.ndarray, uv_b: np.ndarray,
         return StartWait("no essential matrix explains the matches (too little motion or too few matches)")
     # ORB-SLAM's model choice: a homography that explains the matches as well means a planar
     # scene or a rotation with no baseline, where the essential matrix's pose is unreliable.
-    _, inl_h = cv2.findHomography(xy_a, xy_b, cv2.RANSAC, thr)
+    H, inl_h = cv2.findHomography(xy_a, xy_b, cv2.RANSAC, thr)
     n_e, n_h = int(inl.sum()), int(inl_h.sum()) if inl_h is not None else 0
     ratio_h = n_h / max(n_h + n_e, 1)
-    _, R, t, inl_pose = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
-    t = t.ravel() / max(np.linalg.norm(t), 1e-12)
-    good = inl_pose.ravel() > 0
-    X = triangulate(R, t, xy_a[good], xy_b[good])
-    Xb = X @ R.T + t
-    ok = (X[:, 2] > 0) & (Xb[:, 2] > 0)
-    err_a = np.linalg.norm(X[:, :2] / X[:, 2:3] - xy_a[good], axis=1) * cam.fx
-    err_b = np.linalg.norm(Xb[:, :2] / Xb[:, 2:3] - xy_b[good], axis=1) * cam.fx
-    ok &= (err_a < s.max_reproj_px) & (err_b < s.max_reproj_px)
-    par = _parallax_deg(X, R, t)
-    if ok.sum() < s.min_points:
-        if ratio_h > s.homography_ratio:
-            # A homography explains the views: a turn or too short a baseline (E is degenerate).
+    if ratio_h > s.homography_ratio:
+        # A plane (or most of the view on one): the essential matrix is degenerate there and its
+        # pose can be tens of degrees off, so the pose is the homography's (ORB-SLAM's choice),
+        # the decomposition under which most points triangulate, if clearly the best (the points
+        # off the plane, the essential matrix's inliers, tell its two poses apart).
+        tries = []
+        if H is not None:
+            _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
+            cand = (inl_h.ravel() > 0) | (inl.ravel() > 0)
+            tries = [_triangulated(Rh, th.ravel() / max(np.linalg.norm(th), 1e-12), xy_a, xy_b, cand, s, cam.fx)
+                     for Rh, th in zip(Rs, ts)]
+        counts = sorted((int(tr[4].sum()) for tr in tries), reverse=True)
+        if not counts or counts[0] < s.min_points:
+            # A homography explains the views: a turn or too short a baseline.
             return StartWait("not enough parallax yet (the views differ by a turn, or the camera has barely moved): "
                              "move the camera sideways, not only turn it")
+        if len(counts) > 1 and counts[1] >= PLANE_AMBIGUITY * counts[0]:
+            return StartWait(f"a homography explains the motion (R_H {ratio_h:.2f}) and two of its poses fit alike: a "
+                             "flat scene; waiting for more parallax")
+        R, t, good, X, ok, par = max(tries, key=lambda tr: int(tr[4].sum()))
+        # The essential matrix's pose must agree with it: where they differ the views are
+        # still ambiguous, and more parallax tells them apart.
+        _, Re, te, _ = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
+        te = te.ravel() / max(np.linalg.norm(te), 1e-12)
+        d_rot = np.degrees(np.arccos(np.clip((np.trace(Re @ R.T) - 1) / 2, -1.0, 1.0)))
+        d_dir = np.degrees(np.arccos(np.clip(te @ t, -1.0, 1.0)))
+        if d_rot > AGREE_DEG or d_dir > 10 * AGREE_DEG:
+            return StartWait(f"a homography explains the motion (R_H {ratio_h:.2f}) and its pose and the essential "
+                             f"matrix's differ ({d_rot:.1f} deg, {d_dir:.0f} deg in direction): waiting for more "
+                             "parallax")
+    else:
+        _, R, t, inl_pose = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
+        R, t, good, X, ok, par = _triangulated(R, t.ravel() / max(np.linalg.norm(t), 1e-12), xy_a, xy_b,
+                                               inl_pose.ravel() > 0, s, cam.fx)
+    if ok.sum() < s.min_points:
         return StartWait(f"too few points triangulate in front of both views ({int(ok.sum())} of {s.min_points})")
     med = float(np.median(par[ok]))
     if med < s.min_parallax_deg:
