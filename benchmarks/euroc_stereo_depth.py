@@ -55,7 +55,7 @@ class StereoDepth:
         R1, R2, P1, P2, *_ = cv2.stereoRectify(K0, D0, K1, D1, size, T_c1_c0[:3, :3].copy(),
                                                T_c1_c0[:3, 3].reshape(3, 1).copy(), flags=cv2.CALIB_ZERO_DISPARITY,
                                                alpha=0)
-        self.mav0, self.size, self.R_rect_cam0 = mav0, size, R1
+        self.mav0, self.size, self.R_rect_cam0, self.K0 = mav0, size, R1, K0
         self.maps = (cv2.initUndistortRectifyMap(K0, D0, R1, P1, size, cv2.CV_32FC1),
                      cv2.initUndistortRectifyMap(K1, D1, R2, P2, size, cv2.CV_32FC1))
         self.f, self.cx, self.cy = P1[0, 0], P1[0, 2], P1[1, 2]
@@ -105,8 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     seq = open_sequence(a.seq)
     stereo = StereoDepth(a.mav0)
-    K0, *_ = _sensor(a.mav0, "cam0")
-    x0 = int(round(K0[0, 2] - seq.camera.cx))       # the crop's left column (0: uncropped)
+    x0 = int(round(stereo.K0[0, 2] - seq.camera.cx))   # the crop's left column (0: uncropped)
     a.out.mkdir(parents=True)
     (a.out / "depth").mkdir()
     for name in ("camera.toml", "groundtruth.txt"):

@@ -175,13 +175,12 @@ class Measurement:
                S: np.ndarray, max_area: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``feats``' matches in ``g`` searched in the ellipses (uv, S) (none larger than
         ``max_area``, px^2; default the search cap): z (m, 2) NaN where not found, and found (m,).
-        An ellipse whose box is over ``max_area`` is not searched (search.search_kernel's test),
-        counted in ``outgrown``."""
+        An ellipse whose box is over ``max_area`` is not searched (its score is inf), counted in
+        ``outgrown``."""
         s = self.settings
-        cap = self.search_cap_px if max_area is None else max_area
-        half = 3.0 * np.sqrt(np.maximum(S[:, [0, 1], [0, 1]], 0.0))     # the box's half-sides, 3 sigma
-        self.outgrown += int(np.count_nonzero(np.prod(2 * half + 1, axis=1) > cap))
-        z, _, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score, cap)
+        z, score, found = match_features(g, feats, warp, Y, m.state.x_v, self.cam, uv, S, s.views.match_score,
+                                         self.search_cap_px if max_area is None else max_area)
+        self.outgrown += int(np.count_nonzero(np.isinf(score)))
         z[~found] = np.nan
         return z, found
 

@@ -213,6 +213,11 @@ PLANE_AMBIGUITY = 0.75
 AGREE_DEG = 1.0
 
 
+def _unit(t: np.ndarray) -> np.ndarray:
+    """A two-view translation (3,) made unit length (the baseline's scale is not observable)."""
+    return t / max(float(np.linalg.norm(t)), 1e-12)
+
+
 def _triangulated(R: np.ndarray, t: np.ndarray, xy_a: np.ndarray, xy_b: np.ndarray, cand: np.ndarray,
                   s: StartSettings, fx: float):
     """The matches ``cand`` (n,) bool triangulated under the pose ``R, t`` (t unit): (R, t, cand,
@@ -244,6 +249,8 @@ def two_view_geometry(cam: CameraIntrinsics, uv_a: np.ndarray, uv_b: np.ndarray,
     H, inl_h = cv2.findHomography(xy_a, xy_b, cv2.RANSAC, thr)
     n_e, n_h = int(inl.sum()), int(inl_h.sum()) if inl_h is not None else 0
     ratio_h = n_h / max(n_h + n_e, 1)
+    _, R_e, t_e, inl_pose = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
+    t_e = _unit(t_e.ravel())
     if ratio_h > s.homography_ratio:
         # A plane (or most of the view on one): the essential matrix is degenerate there and its
         # pose can be tens of degrees off, so the pose is the homography's (ORB-SLAM's choice),
@@ -253,8 +260,7 @@ def two_view_geometry(cam: CameraIntrinsics, uv_a: np.ndarray, uv_b: np.ndarray,
         if H is not None:
             _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
             cand = (inl_h.ravel() > 0) | (inl.ravel() > 0)
-            tries = [_triangulated(Rh, th.ravel() / max(np.linalg.norm(th), 1e-12), xy_a, xy_b, cand, s, cam.fx)
-                     for Rh, th in zip(Rs, ts)]
+            tries = [_triangulated(Rh, _unit(th.ravel()), xy_a, xy_b, cand, s, cam.fx) for Rh, th in zip(Rs, ts)]
         counts = sorted((int(tr[4].sum()) for tr in tries), reverse=True)
         if not counts or counts[0] < s.min_points:
             # A homography explains the views: a turn or too short a baseline.
@@ -266,18 +272,14 @@ def two_view_geometry(cam: CameraIntrinsics, uv_a: np.ndarray, uv_b: np.ndarray,
         R, t, good, X, ok, par = max(tries, key=lambda tr: int(tr[4].sum()))
         # The essential matrix's pose must agree with it: where they differ the views are
         # still ambiguous, and more parallax tells them apart.
-        _, Re, te, _ = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
-        te = te.ravel() / max(np.linalg.norm(te), 1e-12)
-        d_rot = np.degrees(np.arccos(np.clip((np.trace(Re @ R.T) - 1) / 2, -1.0, 1.0)))
-        d_dir = np.degrees(np.arccos(np.clip(te @ t, -1.0, 1.0)))
+        d_rot = np.degrees(np.arccos(np.clip((np.trace(R_e @ R.T) - 1) / 2, -1.0, 1.0)))
+        d_dir = np.degrees(np.arccos(np.clip(t_e @ t, -1.0, 1.0)))
         if d_rot > AGREE_DEG or d_dir > 10 * AGREE_DEG:
             return StartWait(f"a homography explains the motion (R_H {ratio_h:.2f}) and its pose and the essential "
                              f"matrix's differ ({d_rot:.1f} deg, {d_dir:.0f} deg in direction): waiting for more "
                              "parallax")
     else:
-        _, R, t, inl_pose = cv2.recoverPose(E, xy_a, xy_b, np.eye(3), mask=inl.copy())
-        R, t, good, X, ok, par = _triangulated(R, t.ravel() / max(np.linalg.norm(t), 1e-12), xy_a, xy_b,
-                                               inl_pose.ravel() > 0, s, cam.fx)
+        R, t, good, X, ok, par = _triangulated(R_e, t_e, xy_a, xy_b, inl_pose.ravel() > 0, s, cam.fx)
     if ok.sum() < s.min_points:
         return StartWait(f"too few points triangulate in front of both views ({int(ok.sum())} of {s.min_points})")
     med = float(np.median(par[ok]))

@@ -43,8 +43,9 @@ class Match:
 
 @compiled_kernel(_zncc_in_ellipse, _zncc_coarse_to_fine, _best_in_grid, refine_affine_kernel)
 def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
-    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none); only a
-    match scoring at most ``max_score`` is refined to sub-pixel (the others are not used)."""
+    """(u, v, score) of the best match of ``tpl`` in the ellipse (NaN, NaN, 2 when none; NaN, NaN,
+    inf when the box around the ellipse is over ``max_area``: not searched); only a match scoring at
+    most ``max_score`` is refined to sub-pixel (the others are not used)."""
     H, W = grey.shape
     h = tpl.shape[0] // 2
     a, b, c = S[0, 0], S[0, 1], S[1, 1]
@@ -53,7 +54,7 @@ def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
         return np.nan, np.nan, 2.0
     hu, hv = math.sqrt(n2 * a), math.sqrt(n2 * c)
     if (2 * hu + 1) * (2 * hv + 1) > max_area:
-        return np.nan, np.nan, 2.0
+        return np.nan, np.nan, np.inf
     u0, u1 = max(math.floor(uv[0] - hu), h), min(math.ceil(uv[0] + hu), W - 1 - h)
     v0, v1 = max(math.floor(uv[1] - hv), h), min(math.ceil(uv[1] + hv), H - 1 - h)
     if u1 < u0 or v1 < v0:
@@ -78,7 +79,8 @@ def _search_one(grey, tpl, uv, S, n2, max_area, max_score):
 
 @compiled_kernel(_search_one)
 def search_kernel(grey, tpls, templates, warped, uv, S, n2, max_area, max_score):
-    """Every feature's match: z (m, 2) px (NaN: none in its ellipse) and score (m,); a warped
+    """Every feature's match: z (m, 2) px (NaN: none in its ellipse) and score (m,; inf: its
+    ellipse's box over ``max_area``, not searched); a warped
     template (``tpls[i]`` with ``warped[i]``) that matches nothing is retried as first seen
     (``templates[i]``)."""
     m = tpls.shape[0]
@@ -119,7 +121,7 @@ def match_features(grey: np.ndarray, features: list[MapFeature], warp: np.ndarra
     innovation covariances ``S`` (m, 2, 2): each warped by its plane (through its point ``Y``
     (m, 3), normal ``MapFeature.normal``) where ``warp`` (m,) says so, retried unwarped when the
     warped template finds nothing. ``grey`` : (H, W) float32. Returns z (m, 2) (NaN: not found),
-    score (m,), found (m,)."""
+    score (m,; inf: not searched, the box around its ellipse over ``max_area``), found (m,)."""
     m = len(features)
     if m == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool)
