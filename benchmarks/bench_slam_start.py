@@ -5,9 +5,10 @@ target.toml, and `wvr slam`'s engine starts from natural features:
 
 - camera only: the two-view start, the scale arbitrary: ATE RMSE after Sim(3), frames before the
   start, frames lost;
-- with the IMU: the same start, the scale then taken from the accelerometer (imu_scale.py): the
-  scale's error over the first 3 s and over the run (the truth's scale is the Sim(3) factor that
-  maps the written trajectory onto the ground truth), and the ATE after SE(3);
+- with the IMU: the same start, the map then handed to the IMU once it has seen the scale
+  (imu_handover.py): the filter's scale 3 s after the start and at the end, against the truth's
+  (the Sim(3) factor that maps the written trajectory onto the ground truth), and the ATE after
+  SE(3);
 - with depth (``--depth``: recordings with the twin's depth images): the depth start, metric from
   the first frame: the scale's error (the Sim(3) factor less one) and the ATE after SE(3).
 
@@ -55,7 +56,7 @@ def _job(args) -> tuple:
             (seq / "depth").symlink_to((src / "depth").resolve())
         out = Path(d) / "out"
         try:
-            r = run_slam(seq, out, settings=replace(MapSettings(), use_imu=False), progress=False)
+            r = run_slam(seq, out, settings=replace(MapSettings(), use_imu=kind == "imu"), progress=False)
         except ValueError as e:                     # no start could be made: said, no trajectory
             return kind, scenario, seed, {"started": False, "why": str(e)}
         stats = json.loads((out / "stats.json").read_text())["totals"]
@@ -63,12 +64,15 @@ def _job(args) -> tuple:
     row = {"started": True, "before": r.frames_before_start, "lost": r.lost_frames, "scale": r.scale,
            "sim3_cm": 100 * e.ate_sim3_rmse_m, "se3_cm": 100 * e.ate_aligned_rmse_m, "factor": e.sim3_scale}
     if kind == "imu" and stats.get("imu_scale"):
-        s = stats["imu_scale"]
+        # The filter's scale where the IMU was handed the map (imu_handover.py), else the estimate
+        # after the run.
+        s = stats["imu_scale"].get("filter") or stats["imu_scale"]
         # The written trajectory is the raw one times s (when used): the truth's scale is factor x s.
         s_used = s["scale"] if r.scale == "imu" else 1.0
         s_true = e.sim3_scale * s_used
         row.update(scale_err_pct=100 * (s["scale"] / s_true - 1),
-                   scale_3s_err_pct=100 * (s["scale_first_3s"] / s_true - 1) if s["scale_first_3s"] else float("nan"))
+                   scale_3s_err_pct=100 * (s["scale_first_3s"] / s_true - 1) if s["scale_first_3s"] else float("nan"),
+                   handover_s=s.get("handover_after_s"))
     return kind, scenario, seed, row
 
 
@@ -89,6 +93,8 @@ def main() -> int:
                 continue
             extra = (f", scale error {r['scale_err_pct']:+.1f}% (first 3 s {r['scale_3s_err_pct']:+.1f}%)"
                      if "scale_err_pct" in r else "")
+            if r.get("handover_s") is not None:
+                extra += f", the IMU took the map {r['handover_s']:.1f} s after the start"
             print(f"  {kind:6s} {sc:16s} seed {seed}: scale {r['scale']}, Sim3 {r['sim3_cm']:.2f} cm, SE3 "
                   f"{r['se3_cm']:.2f} cm, factor {r['factor']:.4f}, {r['before']} frames before the start, "
                   f"{r['lost']} lost{extra}", flush=True)
@@ -106,7 +112,9 @@ def main() -> int:
             # estimate it, and said) has no scale error to report.
             took = [r for r in ok if r["scale"] == "imu"]
             err = np.array([abs(r.get("scale_3s_err_pct", np.nan)) for r in took])
-            scale = (f"first 3 s: {np.nanmedian(err):.1f} / {np.nanmax(err):.1f} ({len(took)} of {len(ok)} took the "
+            end = np.array([abs(r.get("scale_err_pct", np.nan)) for r in took])
+            scale = (f"3 s after the start: {np.nanmedian(err):.1f} / {np.nanmax(err):.1f}, at the end: "
+                     f"{np.nanmedian(end):.1f} / {np.nanmax(end):.1f} ({len(took)} of {len(ok)} took the "
                      f"IMU's scale)" if len(took) and np.isfinite(err).any() else
                      f"the IMU's scale taken by {len(took)} of {len(ok)} (too little acceleration)")
         elif kind == "depth":

@@ -466,7 +466,7 @@ def cmd_slam(args) -> int:
     from runtime.slam.run import run_slam
 
     settings = replace(MapSettings(), use_imu=not args.no_imu, imu_biases=not args.no_imu_biases,
-                       features=args.features)
+                       imu_handover=not args.no_imu_handover, features=args.features)
     cfg = replace(DEFAULT_CONFIG, time_offset0=args.imu_clock_offset / 1000.0)
     if args.fixed_impulses:
         cfg = replace(cfg, adapt_sigma_a=False, adapt_sigma_alpha=False, adapt_onset=False)
@@ -1166,6 +1166,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="ignore imu.txt: camera only, the constant-velocity motion model (the paper's system)")
     sl.add_argument("--no-imu-biases", action="store_true",
                     help="with an IMU, take it as calibrated (no gyro and accelerometer bias states)")
+    sl.add_argument("--no-imu-handover", action="store_true",
+                    help="after a natural start, run camera only and take the IMU's scale after the run instead "
+                         "of handing the map to the IMU once it has seen the scale")
     sl.add_argument("--imu-clock-offset", type=_milliseconds, default=0.0, metavar="MS",
                     help="the IMU's stamps' lag behind the camera's, ms, where the filter starts learning it "
                          "(default 0; learnt from 0 up to about 20 ms: give a measured latency beyond)")

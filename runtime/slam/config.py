@@ -436,6 +436,14 @@ class ImuSettings:
     imu_max_gap_s: float = 0.05          # a longer gap between samples falls back to vision only
     imu_max_rate_rad_s: float = 35.0     # samples beyond a MEMS part's range are spikes
     imu_max_accel_m_s2: float = 160.0
+    # A natural start's map is handed to the IMU (imu_handover.py) once the IMU's estimate of its
+    # scale over at least handover_min_s is this well observed; k's prior is then at least
+    # handover_scale_sigma (relative), since a camera-only filter's short-term motion is not its
+    # map's scale to the percent.
+    imu_handover: bool = True
+    handover_min_s: float = 1.0
+    handover_max_sigma: float = 0.03
+    handover_scale_sigma: float = 0.05
 
 
 @dataclass(frozen=True, init=False)

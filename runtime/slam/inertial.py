@@ -6,7 +6,7 @@ For each IMU sample interval ``d`` (s), with ``omega_m`` (rad/s) and ``f_m`` (m/
 gyro and specific force, and the bias states ``b_g``, ``b_a`` (zero without them)::
 
     omega  = omega_m - b_g,  f = f_m - b_a
-    a      = R(q) f + g                    (g = (0, 0, -9.81) m/s^2, world)
+    a      = k (R(q) f + g)                (g = (0, 0, -9.81) m/s^2, world)
     r_new  = r + v d + a d^2 / 2
     v_new  = v + a d
     q_new  = q * q(omega d)
@@ -15,6 +15,10 @@ gyro and specific force, and the bias states ``b_g``, ``b_a`` (zero without them
 
 White noise on ``f_m`` and ``omega_m`` (densities ``imu_accel_noise``, ``imu_gyro_noise``)
 enters through ``G = dx_new/d(f, omega)``.
+
+``k`` is 1 in a metric map. A map started from natural features has its own unit and the first
+camera's frame: there ``k`` (map units per metre) is a state and ``g`` the IMU's estimate of
+gravity in that frame (imu_scale.py), given when the IMU is handed the map.
 
 The samples are checked as they arrive (:class:`ImuStream`): non-finite values, values beyond
 a MEMS part's range (spikes) and samples out of time order are dropped and counted; a frame
@@ -40,11 +44,14 @@ GRAVITY = np.array([0.0, 0.0, -9.81])
 
 @compiled_kernel(rotation_kernel, rotation_derivatives_kernel, quat_left_kernel, quat_right_kernel,
                  rotvec_to_quat_jacobian_kernel)
-def imu_step_kernel(x_v, omega_m, f_m, d):
-    """One IMU interval (the equations of the module docstring): x_v_new, F = dx_new/dx_v
-    (cd, cd) and G = dx_new/d(f_m, omega_m) (cd, 6), for a camera block of 13 or 19 numbers."""
+def imu_step_kernel(x_v, omega_m, f_m, d, g):
+    """One IMU interval (the equations of the module docstring) with gravity ``g`` (3,) m/s^2
+    in the world frame: x_v_new, F = dx_new/dx_v (cd, cd) and G = dx_new/d(f_m, omega_m) (cd, 6),
+    for a camera block of 13, 19, 20 or 21 numbers."""
     cd = x_v.shape[0]
     biased = cd >= 19
+    scaled = cd >= 21
+    k = x_v[20] if scaled else 1.0
     q = x_v[3:7]
     omega = omega_m.copy()
     f = f_m.copy()
@@ -52,7 +59,8 @@ def imu_step_kernel(x_v, omega_m, f_m, d):
         omega -= x_v[13:16]
         f -= x_v[16:19]
     R = rotation_kernel(q[0], q[1], q[2], q[3])
-    a = R @ f + GRAVITY
+    a_m = R @ f + g                      # metric
+    a = k * a_m
     p, dp_dtheta = rotvec_to_quat_jacobian_kernel(omega[0] * d, omega[1] * d, omega[2] * d)
     L = quat_left_kernel(q[0], q[1], q[2], q[3])
     x_new = x_v.copy()
@@ -62,8 +70,9 @@ def imu_step_kernel(x_v, omega_m, f_m, d):
     x_new[10:13] = omega
     D = rotation_derivatives_kernel(q[0], q[1], q[2], q[3])
     da_dq = np.empty((3, 4))
-    for k in range(4):
-        da_dq[:, k] = D[k] @ f
+    for j in range(4):
+        da_dq[:, j] = k * (D[j] @ f)
+    kR = k * R
     dq_domega = (L @ dp_dtheta) * d
     F = np.eye(cd)
     for i in range(3):
@@ -73,36 +82,39 @@ def imu_step_kernel(x_v, omega_m, f_m, d):
     F[7:10, 3:7] = d * da_dq
     F[3:7, 3:7] = quat_right_kernel(p[0], p[1], p[2], p[3])
     if biased:
-        F[0:3, 16:19] = -0.5 * d * d * R
-        F[7:10, 16:19] = -d * R
+        F[0:3, 16:19] = -0.5 * d * d * kR
+        F[7:10, 16:19] = -d * kR
         F[3:7, 13:16] = -dq_domega
         for i in range(3):
             F[10 + i, 13 + i] = -1.0
+    if scaled:
+        F[0:3, 20] = 0.5 * d * d * a_m
+        F[7:10, 20] = d * a_m
     G = np.zeros((cd, 6))
-    G[0:3, 0:3] = 0.5 * d * d * R
-    G[7:10, 0:3] = d * R
+    G[0:3, 0:3] = 0.5 * d * d * kR
+    G[7:10, 0:3] = d * kR
     G[3:7, 3:6] = dq_domega
     for i in range(3):
         G[10 + i, 3 + i] = 1.0
     return x_new, F, G
 
 
-def imu_step_and_jacobians(x_v, omega, f, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def imu_step_and_jacobians(x_v, omega, f, d: float, g=GRAVITY) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One IMU interval: ``x_v_new``, ``F`` and ``G`` (see :func:`imu_step_kernel`)."""
     return imu_step_kernel(np.ascontiguousarray(np.asarray(x_v, float).reshape(-1)), np.asarray(omega, float).reshape(3),
-                           np.asarray(f, float).reshape(3), float(d))
+                           np.asarray(f, float).reshape(3), float(d), np.asarray(g, float).reshape(3))
 
 
 @compiled_kernel(imu_step_kernel)
-def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg):
+def _propagate_kernel(x_v, P_vv, ds, omegas, fs, sa, sg, g):
     """The camera block and its covariance through every interval, and the product of the
     intervals' Jacobians (for the camera-map cross-covariance). ``sa``, ``sg`` (k,): each
-    interval's noise densities."""
+    interval's noise densities; ``g`` (3,) gravity, world."""
     cd = x_v.shape[0]
     F_total = np.eye(cd)
     for j in range(len(ds)):
         d = ds[j]
-        x_v, F, G = imu_step_kernel(x_v, omegas[j], fs[j], d)
+        x_v, F, G = imu_step_kernel(x_v, omegas[j], fs[j], d, g)
         Pn = np.zeros((6, 6))               # white noise of density s over d: variance s^2 / d
         for i in range(3):
             Pn[i, i] = sa[j] * sa[j] / d
@@ -138,7 +150,7 @@ def imu_intervals(imu: np.ndarray, t0: float, t1: float, covered_until: float = 
 
 
 def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig, noise_gain: float = 1.0,
-                covered_until: float = np.inf) -> None:
+                covered_until: float = np.inf, gravity: np.ndarray = GRAVITY) -> None:
     """The EKF prediction from ``t0`` to ``t1`` through the IMU samples, in place: ``P_vv``
     interval by interval with each interval's noise, the camera-map cross-covariance by the
     product of the intervals' Jacobians; then ``q`` is renormalised with its Jacobian.
@@ -147,13 +159,15 @@ def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamCo
     time plus the stream's period). Beyond it the last sample is held without knowing the
     motion (the frame came before the samples covering its end): that stretch takes the
     extra noise of a rate and a specific force that may have changed by ``imu_hold_rate_sigma``
-    and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d)."""
+    and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d).
+    ``gravity`` (3,) m/s^2 in the world frame (the IMU's estimate in a natural start's map)."""
     ds, omegas, fs, held = imu_intervals(imu, t0, t1, covered_until)
     cd = state.cam_dim
     sa = noise_gain * np.sqrt(cfg.imu.imu_accel_noise**2 + held * cfg.imu.imu_hold_accel_sigma**2 * ds)
     sg = noise_gain * np.sqrt(cfg.imu.imu_gyro_noise**2 + held * cfg.imu.imu_hold_rate_sigma**2 * ds)
     x_v, P_vv, F_total = _propagate_kernel(state.x[:cd].copy(), state.P[:cd, :cd].copy(),
-                                           ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg)
+                                           ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg,
+                                           np.asarray(gravity, float))
     bias_walk(P_vv, t1 - t0, cfg)
     apply_camera_prediction(state, x_v, F_total, P_vv, "inertial predict")
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import BA_SLICE, BG_SLICE, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, POSE_DIM, TD_INDEX, check_camera_dim
+from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED, POSE_DIM, SCALE_INDEX,
+                     TD_INDEX, check_camera_dim)
 from .quaternion import dq_dtheta_right
 
 
@@ -30,10 +31,14 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
     accelerometer's correlated with the attitude it was read through (as a new feature is with
     the camera), so that refining the attitude refines it; with ``gyro_bias`` (3,) rad/s, a start's
     own estimate of the gyro's bias with standard deviation ``gyro_bias_sigma``, that one for the
-    gyro's. Without ``cfg`` the bias entries are left zero."""
+    gyro's. Without ``cfg`` the bias entries are left zero. The map's scale ``k`` (a 21-number
+    block) starts at 1 with no variance: nothing observes it until the IMU is handed the map
+    (system.MonoSLAM's hand-over sets it from the IMU's estimate)."""
     cam_dim = check_camera_dim(cam_dim)
     x_v = np.zeros(cam_dim)
     x_v[0:3], x_v[3:7] = r, q
+    if cam_dim == CAMERA_DIM_SCALED:
+        x_v[SCALE_INDEX] = 1.0
     P = np.zeros((cam_dim, cam_dim))
     P[:7, :7] = P_pose
     P[7:10, 7:10] = np.eye(3) * sigma_v**2
@@ -42,7 +47,7 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
         return x_v, P
     for sl, s0 in ((BG_SLICE, cfg.imu.gyro_bias_sigma0), (BA_SLICE, cfg.imu.accel_bias_sigma0)):
         P[sl, sl] = np.eye(3) * s0**2
-    if cam_dim == CAMERA_DIM_TIMED:
+    if cam_dim >= CAMERA_DIM_TIMED:
         x_v[TD_INDEX], P[TD_INDEX, TD_INDEX] = cfg.imu.time_offset0, cfg.imu.time_offset_sigma0**2
     if still is not None:
         x_v[BG_SLICE], P[BG_SLICE, BG_SLICE] = still.b_g, np.eye(3) * still.var_g

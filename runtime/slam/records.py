@@ -112,3 +112,4 @@ class FrameStats:
     sigma_alpha: float = 0.0      # the angular impulse, rad/s^2 (SlamConfig.impulses.adapt_sigma_alpha)
     reacquired: bool = False      # the camera put back at the target's pose (reacquire.TargetWatch)
     skipped: str = ""
+    map_units_per_m: float | None = None   # the scale state k once the IMU holds a natural start's map

@@ -22,8 +22,9 @@ from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
 from .measurement import predict, predict_points
-from .state import TD_INDEX
+from .state import SCALE_INDEX, TD_INDEX
 from .system import MonoSLAM, SlamStartError
+from .imu_scale import gravity_aligned
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,9 @@ class SlamRun:
     frames_before_start: int = 0
     start_waits: dict = field(default_factory=dict)
     #: The IMU's estimate of a natural start's scale (metres per map unit) and gravity, over the
-    #: first 3 s of the run and over all of it, and whether it was used (scale_from_imu).
+    #: first 3 s of the run and over all of it, after the run (scale_from_imu); where the IMU was
+    #: handed the map (imu_handover.py), ``filter``: when, and the filter's scale then, 3 s after
+    #: the start and at the end, which is the one used.
     imu_scale: dict | None = None
 
 
@@ -155,7 +158,7 @@ def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
     moved: the estimate over the run's first 1, 2, 4, ... s (``history``), and from how many
     seconds on every such estimate lies within IMU_SCALE_SETTLED_REL of the whole run's
     (``settled_s``; None if only the whole run's does). None when the run is too short."""
-    from .imu_scale import estimate_scale, gravity_aligned
+    from .imu_scale import estimate_scale
 
     R, p = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
     full = estimate_scale(t, p, R, imu.t, imu.gyro, imu.accel)
@@ -189,6 +192,20 @@ def scale_from_imu(t: np.ndarray, T_world_cam: np.ndarray, imu) -> dict | None:
             "scale_first_3s": first.scale if first is not None else None,
             "sigma_rel_first_3s": first.sigma_rel if first is not None else None,
             "history": history, "settled_s": settled_s, "said": said}
+
+
+def filter_scale(slam: MonoSLAM, handed) -> dict:
+    """The scale state's history after the IMU's hand-over (imu_handover.Handover): metres per
+    map unit when the IMU took the map, IMU_SCALE_EARLY_S after the start and at the end, with
+    the filter's relative standard deviation at the end."""
+    t0 = slam.stats[0].t
+    early = next((s.map_units_per_m for s in slam.stats
+                  if s.map_units_per_m is not None and s.t >= t0 + IMU_SCALE_EARLY_S), None)
+    st = slam.state
+    return {"handover_after_s": handed.t - t0, "scale_at_handover": 1.0 / handed.k,
+            "scale_first_3s": 1.0 / early if early else None, "scale": 1.0 / st.k,
+            "sigma_rel": float(np.sqrt(max(st.P[SCALE_INDEX, SCALE_INDEX], 0.0))) / st.k,
+            "g_world": np.asarray(slam.track.gravity, float).tolist()}
 
 
 def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
@@ -276,12 +293,15 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             print(f"slam: note: {note}")
     saved = map_io.load_map(map_path, seq.camera) if map_path is not None else None
     natural = saved is None and seq.target is None
-    if natural and seq.imu is not None and settings.imu.use_imu:
-        # The map's unit is arbitrary or the depth's, and its frame the first camera's, which the
-        # IMU's gravity does not know: camera only (the IMU's scale and gravity are not used yet).
+    if natural and seq.imu is not None and settings.imu.use_imu and (getattr(seq, "depth_paths", None) is not None
+                                                                     or not settings.imu.imu_handover):
+        # The depth's map is metric, but its frame the first camera's, which the IMU's gravity
+        # does not know: camera only. (Without depth the IMU is handed the map once it has seen
+        # its scale: imu_handover.py.)
         settings = replace(settings, imu=replace(settings.imu, use_imu=False))
         if progress:
-            print("slam: natural start: the IMU is not used (camera only)")
+            print("slam: natural start" + (" from depth" if settings.imu.imu_handover else "") +
+                  ": the IMU does not drive the filter (camera only)")
     out = Path(out)
     writer = None
     slam = MonoSLAM(seq.camera, cfg, settings, imu=seq.imu is not None, seed=seed)
@@ -371,12 +391,21 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
         writer.release()
     # A natural start's arbitrary unit, made metric (and the frame turned upright) by the IMU.
     R_out, s_out, imu_scale = np.eye(3), 1.0, None
-    if natural and slam.scale_source == "arbitrary" and seq.imu is not None and len(times) > 2:
+    handed = slam.handover.done if slam.handover is not None else None
+    if natural and slam.scale_source in ("arbitrary", "imu") and seq.imu is not None and len(times) > 2:
         imu_scale = scale_from_imu(np.array(times), np.array(poses), seq.imu)
-        if imu_scale is not None and imu_scale["usable"]:
+        if handed is not None:
+            R_out, s_out = gravity_aligned(slam.track.gravity), 1.0 / slam.state.k
+            imu_scale = dict(imu_scale or {}, filter=filter_scale(slam, handed))
+            if progress:
+                f = imu_scale["filter"]
+                print(f"slam: scale from the IMU in the filter: {s_out:.4g} m per map unit (+- "
+                      f"{100 * f['sigma_rel']:.1f}%; {f['scale_at_handover']:.4g} when the IMU took the map "
+                      f"{f['handover_after_s']:.1f} s after the start)")
+        elif imu_scale is not None and imu_scale["usable"]:
             R_out, s_out = np.array(imu_scale["R_up_world"]), imu_scale["scale"]
             slam.scale_source = "imu"
-        if progress:
+        if progress and handed is None:
             print("slam: " + imu_scale["said"] if imu_scale is not None else
                   "slam: the IMU cannot give the scale (too short a run): the scale stays arbitrary")
     if times:

@@ -44,12 +44,13 @@ import numpy as np
 import scipy.linalg
 
 from .kernels import compiled_kernel
-from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, CAMERA_NAMES,
-                     FEATURE_DIMS, FEATURE_NAMES, NOISE_DIM, POSE_DIM, Q_SLICE, R_SLICE, TD_INDEX, V_SLICE, W_SLICE,
-                     check_camera_dim, feature_starts, state_size)
+from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED,
+                     CAMERA_NAMES, FEATURE_DIMS, FEATURE_NAMES, NOISE_DIM, POSE_DIM, Q_SLICE, R_SLICE, SCALE_INDEX,
+                     TD_INDEX, V_SLICE, W_SLICE, check_camera_dim, feature_starts, state_size)
 
-__all__ = ["BA_SLICE", "BG_SLICE", "CAMERA_DIM", "CAMERA_DIM_BIASED", "CAMERA_DIM_TIMED", "NOISE_DIM", "POSE_DIM",
-           "Q_SLICE", "R_SLICE", "TD_INDEX", "V_SLICE", "W_SLICE", "SlamNumericalError", "State", "StateSnapshot",
+__all__ = ["BA_SLICE", "BG_SLICE", "CAMERA_DIM", "CAMERA_DIM_BIASED", "CAMERA_DIM_SCALED", "CAMERA_DIM_TIMED",
+           "NOISE_DIM", "POSE_DIM", "Q_SLICE", "R_SLICE", "SCALE_INDEX", "TD_INDEX", "V_SLICE", "W_SLICE",
+           "SlamNumericalError", "State", "StateSnapshot",
            "check_covariance", "check_mean", "feature_starts", "mirror_upper", "state_size"]
 
 
@@ -271,7 +272,16 @@ class State:
 
     @property
     def has_time_offset(self) -> bool:
-        return self.cam_dim == CAMERA_DIM_TIMED
+        return self.cam_dim >= CAMERA_DIM_TIMED
+
+    @property
+    def has_scale(self) -> bool:
+        return self.cam_dim == CAMERA_DIM_SCALED
+
+    @property
+    def k(self) -> float:
+        """The map's units per metre (1 without its state: a metric map)."""
+        return float(self.x[SCALE_INDEX]) if self.has_scale else 1.0
 
     @property
     def t_d(self) -> float:

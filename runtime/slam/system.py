@@ -57,6 +57,7 @@ from ..sequence import Target
 from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, POINT, inverse_depth
+from .imu_handover import ImuHandover
 from .inertial import ImuStream, StillBiases, still_biases
 from .mapping import FeatureIds, ImageNoise, cap_victims, stay_in_view
 from .prior import camera_prior, pose_covariance, restart_at
@@ -65,7 +66,8 @@ from .records import FrameStats, MapView, SearchView, TrackingStatus
 from .appearance import extract_template
 from .startup import PoseHypothesis, RefinedTarget, SlamStartError, print_contrast, start_hypotheses
 from .filter import FeatureNotMeasurable
-from .state import CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_TIMED, SlamNumericalError, State
+from .state import (CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED, TD_INDEX, SlamNumericalError,
+                    State)
 from .appearance import first_view_patch, patch_half
 from .map_feature import MapFeature
 from .track import Track
@@ -120,6 +122,7 @@ class MonoSLAM:
         self.still: StillBiases | None = None    # the biases a still stretch before the start gave
         self.noise = ImageNoise(settings.measure.noise_every, settings.views.match_score)
         self.scale_source = "target"            # what fixed the map's unit: target, map, depth, imu or arbitrary
+        self.handover: ImuHandover | None = None   # a natural start's map waiting for the IMU (imu_handover.py)
 
     # -------------------------------------------------------------- views
     @property
@@ -213,13 +216,15 @@ class MonoSLAM:
             search=tr.last)
 
     # -------------------------------------------------------------- start-up
-    def _camera_state(self, hyp: PoseHypothesis, t: float, gyro_bias=None, gyro_bias_sigma: float = 0.0) -> State:
+    def _camera_state(self, hyp: PoseHypothesis, t: float, gyro_bias=None, gyro_bias_sigma: float = 0.0,
+                      upright: bool = True) -> State:
         """A state of the camera alone at the start-up pose ``hyp``; with bias states, the biases
-        a still stretch before the first frame gave (kept in ``still``), the gyro's replaced by
-        ``gyro_bias`` (3,) rad/s with standard deviation ``gyro_bias_sigma`` where a start gives it."""
+        a still stretch before the first frame gave (kept in ``still``; only in an ``upright``
+        world, whose gravity is known), the gyro's replaced by ``gyro_bias`` (3,) rad/s with
+        standard deviation ``gyro_bias_sigma`` where a start gives it."""
         q = quat_from_rotation(hyp.R_world_cam)
         still = None
-        if self.cam_dim >= CAMERA_DIM_BIASED:
+        if self.cam_dim >= CAMERA_DIM_BIASED and upright:
             still = still_biases(self.imu.rows, t, q, self.settings, self.cfg)
             if still is not None:
                 self.still = still
@@ -286,7 +291,16 @@ class MonoSLAM:
         T = np.eye(4) if ns.T_world_cam is None else np.asarray(ns.T_world_cam, float)
         R_wc, r = T[:3, :3].copy(), T[:3, 3].copy()
         hyp = PoseHypothesis(R_wc, r, np.zeros((6, 6)), 0.0, 0.0)
-        state = self._camera_state(hyp, t, ns.gyro_bias, ns.gyro_bias_sigma)
+        self.handover = None
+        if ns.scale == "arbitrary" and self.use_imu and self.settings.imu.imu_handover:
+            # The map's unit and its frame's gravity are the IMU's to find: camera only until then.
+            self.cam_dim = CAMERA_DIM_SCALED
+            self.handover = ImuHandover(self.settings)
+        # A map waiting for the IMU's hand-over is in the first camera's frame, whose gravity a
+        # still stretch cannot be read against (the head-motion start's frame is upright).
+        state = self._camera_state(hyp, t, ns.gyro_bias, ns.gyro_bias_sigma, upright=self.handover is None)
+        if state.has_time_offset and not self.settings.imu.imu_time_offset:
+            state.P[TD_INDEX, TD_INDEX] = 0.0
         state.x[7:10] = ns.v_world
         ph = patch_half(self.template_px)
         feats = []
@@ -367,6 +381,9 @@ class MonoSLAM:
         self._decide()
         st = stats[0] if len(self._tracks) == len(stats) else stats[self._winner]
         st.hypotheses = len(self._tracks)
+        if self.handover is not None:
+            self._hand_over(t)
+            st.map_units_per_m = self.state.k if self.handover.done is not None else None
         st.seconds = time.perf_counter() - t0
         st.cpu_seconds = time.thread_time() - c0
         self.stats.append(st)
@@ -408,15 +425,34 @@ class MonoSLAM:
             self.messages.append(f"slam: planar target ambiguity resolved at frame {self.frame} "
                                  f"(log-likelihood ratio {gap:.1f}, pose {best})")
 
+    def _hand_over(self, t: float) -> None:
+        """Give a natural start's map to the IMU once its scale is observed (imu_handover.py)."""
+        if self.handover.done is not None or self.lost or not self.localised:
+            return
+        st = self.state
+        e = self.handover.add(t, st.r, quat_to_rotation(st.q), self.imu.rows)
+        if e is None:
+            return
+        h = self.handover.hand_over(st, e)
+        self.track.gravity = np.array(e.g_world, float)
+        self.scale_source = "imu"
+        self.messages.append(f"slam: the IMU takes the map at frame {self.frame}, {h.seconds:.1f} s after the start: "
+                             f"{e.scale:.4g} m per map unit (+- {100 * e.sigma_rel:.1f}%, the camera's acceleration "
+                             f"{e.excitation:.2f} m/s^2 RMS); the filter refines it from here")
+
     def _imu_rows(self, t_prev: float, t: float):
         """The IMU rows covering every track's prediction to the frame at ``t`` (None: not
-        covered, or no IMU)."""
+        covered, no IMU, or a natural start's map not yet handed to it)."""
         if not (self.settings.imu.use_imu and len(self.imu.rows)):
+            return None
+        if self.handover is not None and self.handover.done is None:
             return None
         spans = [tr.span(t_prev, t) for tr in self._tracks] or [(t_prev, t)]
         return self.imu.covering(min(a for a, _ in spans), max(b for _, b in spans))
 
     def _drop_imu(self, t: float) -> None:
+        if self.handover is not None and self.handover.done is None:
+            return                              # the hand-over's estimate needs every sample since the start
         self.imu.drop_before(t + min([0.0] + [tr.state.t_ref for tr in self._tracks]))
 
     def skip(self, t: float, why: str) -> FrameStats:

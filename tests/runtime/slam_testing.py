@@ -68,13 +68,15 @@ def orientation_covariance(P_qq, q) -> np.ndarray:
 # -- states ------------------------------------------------------------------------------------
 
 def random_camera(rng, w_scale: float = 1.0, cam_dim: int = CAMERA_DIM) -> np.ndarray:
-    """A camera block (13, 19 or 20,): random pose, velocities, (19) small biases and (20) a
-    clock offset of a few ms."""
+    """A camera block (13, 19, 20 or 21,): random pose, velocities, (19) small biases, (20) a
+    clock offset of a few ms and (21) a map's scale of 0.5-2 units per metre."""
     x = np.concatenate([rng.normal(0, 1, 3), random_quat(rng), rng.normal(0, 0.5, 3), rng.normal(0, w_scale, 3)])
     if cam_dim > CAMERA_DIM:
         x = np.concatenate([x, rng.normal(0, 0.01, 3), rng.normal(0, 0.1, 3)])
     if cam_dim > 19:
         x = np.r_[x, rng.normal(0, 0.004)]
+    if cam_dim > 20:
+        x = np.r_[x, rng.uniform(0.5, 2.0)]
     return x
 
 
@@ -93,6 +95,8 @@ def camera_covariance(q, sig_r, sig_theta, sig_v, sig_w, cam_dim: int = CAMERA_D
         P[16:19, 16:19] = sig_ba**2 * np.eye(3)
     if cam_dim > 19:
         P[19, 19] = sig_td**2
+    if cam_dim > 20:
+        P[20, 20] = 0.05**2
     return P
 
 

@@ -134,8 +134,11 @@ def test_euroc_imu_rotated_into_the_camera_frame(tmp_path):
     # By hand: camera x = body y, camera y = -body x, camera z = body z. Body sample k:
     # w = (0.1 + k, 0.2, 0.3), a = (9.81, -0.5, 1.5 + k).
     np.testing.assert_allclose(seq.imu.gyro, [[0.2, -0.1, 0.3], [0.2, -1.1, 0.3], [0.2, -2.1, 0.3]], atol=1e-15)
-    np.testing.assert_allclose(seq.imu.accel, [[-0.5, -9.81, 1.5], [-0.5, -9.81, 2.5], [-0.5, -9.81, 3.5]],
-                               atol=1e-15)
+    # The specific force at the camera, r = (0.1, 0, 0) m from the IMU: dw/dt is along r (no
+    # tangential term), and w x (w x r) = (w.r) w - |w|^2 r = (-0.013, 0.002, 0.003),
+    # (-0.013, 0.022, 0.033), (-0.013, 0.042, 0.063) for k = 0, 1, 2.
+    np.testing.assert_allclose(seq.imu.accel, [[-0.498, -9.797, 1.503], [-0.478, -9.797, 2.533],
+                                               [-0.458, -9.797, 3.563]], atol=1e-12)
     assert seq.imu_ns.tolist() == [T0, T0 + 5_000_001, T0 + 10_000_002]
 
 

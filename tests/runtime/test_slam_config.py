@@ -44,8 +44,9 @@ def test_every_flat_name_lists_its_group_s_value_and_is_refused_as_an_attribute(
     # every old field, plus the top-level ones (93), the guided search's three (measure.guide_*),
     # its rescue's area (measure.rescue_area_px), the depth prior's spread
     # (inverse_depth.scene_depth_spread) and its two relative widths (inverse_depth.scene_relative_width,
-    # inverse_depth.two_view_relative_width)
-    assert len(MAP_FLAT) + 2 == 93 + 3 + 1 + 1 + 2 and len(SLAM_FLAT) + 1 == 29
+    # inverse_depth.two_view_relative_width) and the IMU's hand-over's four (imu.imu_handover,
+    # imu.handover_*)
+    assert len(MAP_FLAT) + 2 == 93 + 3 + 1 + 1 + 2 + 4 and len(SLAM_FLAT) + 1 == 29
     assert set(MapSettings().flat()) == set(MAP_FLAT) | {"features", "warp"}
 
 

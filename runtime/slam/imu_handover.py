@@ -1,0 +1,94 @@
+"""The IMU handed a map started from natural features: a visual-inertial start in the filter.
+
+A two-view start fixes the map's unit arbitrarily and its frame to the first camera's, which
+knows nothing of gravity, so the IMU cannot drive the prediction at first. The filter runs on
+the camera alone while the camera's poses are kept; once the IMU's scale and gravity estimate
+over them (imu_scale.estimate_scale, the linear initialisation of Mur-Artal and Tardos 2017) is
+observed well enough, the IMU is handed the map: the camera block's scale state ``k`` (map
+units per metre, layout.py) takes the estimate with a prior wide enough for the filter to
+correct it, the accelerometer's bias takes the estimate's, and gravity in the map's frame is the
+estimate's. From then the IMU drives the prediction (inertial.py) and the filter refines ``k``
+with every frame: the scale then follows the IMU's accelerations rather than the camera-only
+filter's short-term motion, which overshoots them by a few percent (the constant-velocity model
+trades some translation for rotation). As ORB-SLAM3 initialises its IMU after a visual-only
+start, here in an EKF (Nutzi et al. 2011 keep such a scale state in theirs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import MapSettings
+from .imu_scale import ScaleEstimate, estimate_scale
+from .layout import BA_SLICE, SCALE_INDEX
+from .state import State
+
+#: The camera accelerated this much (RMS, m/s^2) for the scale to be observed.
+MIN_EXCITATION_M_S2 = 0.2
+#: Estimates are tried this often (s of the camera's poses), not every frame.
+TRY_EVERY_S = 0.25
+#: Frame triplets an estimate needs: three equations each for six unknowns (the scale, gravity's
+#: direction, the accelerometer's bias), twice over, so that its spread means something.
+MIN_TRIPLETS = 5
+
+
+@dataclass(frozen=True)
+class Handover:
+    """What the IMU was handed: at ``t`` (s), after ``seconds`` of the camera's poses, the scale
+    estimate ``estimate``; ``k`` (map units per metre) and its prior standard deviation ``sigma_k``."""
+
+    t: float
+    seconds: float
+    estimate: ScaleEstimate
+    k: float
+    sigma_k: float
+
+
+class ImuHandover:
+    """Keeps the camera's poses from a natural start until the IMU's estimate over them is good
+    enough (:meth:`add` returns it), then is done."""
+
+    def __init__(self, settings: MapSettings):
+        self.settings = settings
+        self.t: list[float] = []
+        self.r: list[np.ndarray] = []
+        self.R: list[np.ndarray] = []
+        self._tried = -np.inf
+        self.done: Handover | None = None
+
+    def add(self, t: float, r: np.ndarray, R_world_cam: np.ndarray, imu_rows: np.ndarray) -> ScaleEstimate | None:
+        """The camera at ``t`` (s), ``r`` (3,) map units, ``R_world_cam`` (3, 3); ``imu_rows``
+        (m, 7) every IMU sample since the start. The estimate over the poses so far when it is
+        observed well enough to hand the map over, else None."""
+        self.t.append(float(t))
+        self.r.append(np.array(r, float))
+        self.R.append(np.array(R_world_cam, float))
+        s = self.settings.imu
+        if t - self.t[0] < s.handover_min_s or t - self._tried < TRY_EVERY_S or len(imu_rows) < 3:
+            return None
+        self._tried = t
+        e = estimate_scale(np.array(self.t), np.array(self.r), np.array(self.R), imu_rows[:, 0], imu_rows[:, 1:4],
+                           imu_rows[:, 4:7])
+        if e is None or e.triplets < MIN_TRIPLETS or not np.isfinite(e.scale) or e.scale <= 0 or \
+                e.excitation < MIN_EXCITATION_M_S2 or e.sigma_rel > s.handover_max_sigma:
+            return None
+        return e
+
+    def hand_over(self, state: State, e: ScaleEstimate) -> Handover:
+        """Write the estimate ``e`` into ``state`` (a 21-number camera block): ``k`` = 1 / scale,
+        uncorrelated, with a relative standard deviation of at least ``handover_scale_sigma``; the
+        accelerometer's bias the estimate's. Gravity is the caller's to give the prediction."""
+        k = 1.0 / e.scale
+        sigma_k = k * max(e.sigma_rel, self.settings.imu.handover_scale_sigma)
+        x, P = state.x.copy(), state.P.copy()
+        x[SCALE_INDEX] = k
+        P[SCALE_INDEX, :] = 0.0
+        P[:, SCALE_INDEX] = 0.0
+        P[SCALE_INDEX, SCALE_INDEX] = sigma_k**2
+        x[BA_SLICE] = e.accel_bias
+        state.x, state.P = x, P
+        self.done = Handover(self.t[-1], self.t[-1] - self.t[0], e, k, sigma_k)
+        self.t, self.r, self.R = [], [], []
+        return self.done
