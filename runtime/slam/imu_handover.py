@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import MapSettings
-from .imu_scale import ScaleEstimate, estimate_scale
+from .imu_scale import STRIDE_S, ScaleEstimate, preintegrate, solve_scale
 from .layout import BA_SLICE, SCALE_INDEX
 from .state import State
 
@@ -48,13 +48,17 @@ class Handover:
 
 class ImuHandover:
     """Keeps the camera's poses from a natural start until the IMU's estimate over them is good
-    enough (:meth:`add` returns it), then is done."""
+    enough (:meth:`add` returns it), then is done. Only the frames an estimate takes are kept
+    (imu_scale.kept_frames: the same choice over the same poses), each interval between them
+    pre-integrated once, so a try costs the solve, not the whole run's integration again."""
 
     def __init__(self, settings: MapSettings):
         self.settings = settings
         self.t: list[float] = []
         self.r: list[np.ndarray] = []
         self.R: list[np.ndarray] = []
+        self._pre: dict[int, tuple] = {}        # kept interval i (frames i, i + 1) -> its pre-integration
+        self._t_first = self._t_last = None
         self._tried = -np.inf
         self.done: Handover | None = None
 
@@ -62,15 +66,27 @@ class ImuHandover:
         """The camera at ``t`` (s), ``r`` (3,) map units, ``R_world_cam`` (3, 3); ``imu_rows``
         (m, 7) every IMU sample since the start. The estimate over the poses so far when it is
         observed well enough to hand the map over, else None."""
-        self.t.append(float(t))
-        self.r.append(np.array(r, float))
-        self.R.append(np.array(R_world_cam, float))
+        t = float(t)
+        if self._t_first is None:
+            self._t_first = t
+        self._t_last = t
+        if not self.t or t - self.t[-1] >= STRIDE_S:
+            self.t.append(t)
+            self.r.append(np.array(r, float))
+            self.R.append(np.array(R_world_cam, float))
         s = self.settings.imu
-        if t - self.t[0] < s.handover_min_s or t - self._tried < TRY_EVERY_S or len(imu_rows) < 3:
+        if t - self._t_first < s.handover_min_s or t - self._tried < TRY_EVERY_S or len(imu_rows) < 3:
             return None
         self._tried = t
-        e = estimate_scale(np.array(self.t), np.array(self.r), np.array(self.R), imu_rows[:, 0], imu_rows[:, 1:4],
-                           imu_rows[:, 4:7])
+        t_imu = imu_rows[:, 0]
+        inside = [i for i, ti in enumerate(self.t) if t_imu[0] <= ti <= t_imu[-1]]
+        if len(inside) < 3:
+            return None
+        for i in inside[:-1]:
+            if i not in self._pre:
+                self._pre[i] = preintegrate(t_imu, imu_rows[:, 1:4], imu_rows[:, 4:7], self.t[i], self.t[i + 1])
+        e = solve_scale(np.array(self.t)[inside], np.array(self.r)[inside], np.array(self.R)[inside],
+                        [self._pre[i] for i in inside[:-1]])
         if e is None or e.triplets < MIN_TRIPLETS or not np.isfinite(e.scale) or e.scale <= 0 or \
                 e.excitation < MIN_EXCITATION_M_S2 or e.sigma_rel > s.handover_max_sigma:
             return None
@@ -89,6 +105,6 @@ class ImuHandover:
         P[SCALE_INDEX, SCALE_INDEX] = sigma_k**2
         x[BA_SLICE] = e.accel_bias
         state.x, state.P = x, P
-        self.done = Handover(self.t[-1], self.t[-1] - self.t[0], e, k, sigma_k)
-        self.t, self.r, self.R = [], [], []
+        self.done = Handover(self._t_last, self._t_last - self._t_first, e, k, sigma_k)
+        self.t, self.r, self.R, self._pre = [], [], [], {}
         return self.done

@@ -29,6 +29,9 @@ from kinematics.transforms import skew
 
 #: Standard gravity, m/s^2.
 GRAVITY_M_S2 = 9.80665
+#: Frames an estimate takes are this far apart at least, s (a longer interval averages the
+#: positions' noise).
+STRIDE_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -83,21 +86,34 @@ def preintegrate(t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t0: flo
     return dR, dv, dp
 
 
-def estimate_scale(t: np.ndarray, p: np.ndarray, R: np.ndarray, t_imu: np.ndarray, gyro: np.ndarray,
-                   accel: np.ndarray, stride_s: float = 0.3, bias_sigma: float = 0.2) -> ScaleEstimate | None:
-    """The scale and gravity from the camera's poses (n,) times s, (n, 3) positions in map units,
-    (n, 3, 3) camera-to-world rotations, and the IMU's samples (camera frame). Frames are taken
-    ``stride_s`` apart (a longer interval averages the positions' noise). None with fewer than
-    three such frames inside the IMU's span."""
+def kept_frames(t: np.ndarray, stride_s: float = STRIDE_S) -> list[int]:
+    """Indices of the frames (n,) s an estimate takes: the first, then each at least ``stride_s``
+    after the last taken."""
     keep = [0]
     for k in range(1, len(t)):
         if t[k] - t[keep[-1]] >= stride_s:
             keep.append(k)
-    keep = [k for k in keep if t_imu[0] <= t[k] <= t_imu[-1]]
+    return keep
+
+
+def estimate_scale(t: np.ndarray, p: np.ndarray, R: np.ndarray, t_imu: np.ndarray, gyro: np.ndarray,
+                   accel: np.ndarray, stride_s: float = STRIDE_S, bias_sigma: float = 0.2) -> ScaleEstimate | None:
+    """The scale and gravity from the camera's poses (n,) times s, (n, 3) positions in map units,
+    (n, 3, 3) camera-to-world rotations, and the IMU's samples (camera frame). Frames are taken
+    ``stride_s`` apart (:func:`kept_frames`). None with fewer than three such frames inside the
+    IMU's span."""
+    keep = [k for k in kept_frames(t, stride_s) if t_imu[0] <= t[k] <= t_imu[-1]]
     if len(keep) < 3:
         return None
-    tk, pk, Rk = t[keep], p[keep], R[keep]
+    tk = t[keep]
     pre = [preintegrate(t_imu, gyro, accel, tk[i], tk[i + 1]) for i in range(len(tk) - 1)]
+    return solve_scale(tk, p[keep], R[keep], pre, bias_sigma)
+
+
+def solve_scale(tk: np.ndarray, pk: np.ndarray, Rk: np.ndarray, pre: list, bias_sigma: float = 0.2
+                ) -> ScaleEstimate | None:
+    """:func:`estimate_scale`'s solution from its frames (m,) s, (m, 3), (m, 3, 3) (three or more)
+    and the IMU's pre-integration (dR, dv, dp) over each interval between them (m - 1)."""
     A, b, half, Bb = [], [], [], []
     for i in range(len(tk) - 2):
         d12, d23 = tk[i + 1] - tk[i], tk[i + 2] - tk[i + 1]

@@ -58,7 +58,7 @@ from .config import DEFAULT_CONFIG, MapSettings, SlamConfig
 from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, POINT, inverse_depth
 from .imu_handover import ImuHandover
-from .inertial import ImuStream, StillBiases, still_biases
+from .inertial import ImuStream, StillBiases, predict_imu, still_biases
 from .mapping import FeatureIds, ImageNoise, cap_victims, stay_in_view
 from .prior import camera_prior, pose_covariance, restart_at
 from .quaternion import quat_from_rotation, quat_to_rotation
@@ -399,6 +399,9 @@ class MonoSLAM:
         trial = copy.deepcopy(self._tracks[0])
         try:
             trial.step(g, t, t + 1e-3, None, FrameStats(1, t + 1e-3), 1, self.imu.covered_until)
+            if self.awaiting_imu:
+                # And the inertial prediction's, which the hand-over would otherwise load mid-run.
+                predict_imu(trial.state, np.array([[t, 0.0, 0.0, 0.0, 0.0, 0.0, 9.81]]), t, t + 1e-3, self.cfg)
         except (SlamNumericalError, FeatureNotMeasurable, ValueError, np.linalg.LinAlgError):
             pass
 
@@ -425,9 +428,14 @@ class MonoSLAM:
             self.messages.append(f"slam: planar target ambiguity resolved at frame {self.frame} "
                                  f"(log-likelihood ratio {gap:.1f}, pose {best})")
 
+    @property
+    def awaiting_imu(self) -> bool:
+        """Whether a natural start's map waits to be handed to the IMU (imu_handover.py)."""
+        return self.handover is not None and self.handover.done is None
+
     def _hand_over(self, t: float) -> None:
         """Give a natural start's map to the IMU once its scale is observed (imu_handover.py)."""
-        if self.handover.done is not None or self.lost or not self.localised:
+        if not self.awaiting_imu or self.lost or not self.localised:
             return
         st = self.state
         e = self.handover.add(t, st.r, quat_to_rotation(st.q), self.imu.rows)
@@ -445,13 +453,13 @@ class MonoSLAM:
         covered, no IMU, or a natural start's map not yet handed to it)."""
         if not (self.settings.imu.use_imu and len(self.imu.rows)):
             return None
-        if self.handover is not None and self.handover.done is None:
+        if self.awaiting_imu:
             return None
         spans = [tr.span(t_prev, t) for tr in self._tracks] or [(t_prev, t)]
         return self.imu.covering(min(a for a, _ in spans), max(b for _, b in spans))
 
     def _drop_imu(self, t: float) -> None:
-        if self.handover is not None and self.handover.done is None:
+        if self.awaiting_imu:
             return                              # the hand-over's estimate needs every sample since the start
         self.imu.drop_before(t + min([0.0] + [tr.state.t_ref for tr in self._tracks]))
 

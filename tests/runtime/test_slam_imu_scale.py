@@ -100,3 +100,39 @@ def test_the_scale_s_convergence_is_reported_over_longer_and_longer_starts_of_th
     assert "from the run's first 2 s on" in r["said"]
     T[:, :3, 3] = p[cam] / s_true
     assert scale_from_imu(tc, T, imu)["settled_s"] == 1.0
+
+
+def test_the_hand_over_estimates_as_the_whole_run_s_estimate_would_and_writes_k():
+    """imu_handover.ImuHandover fed frame by frame: each estimate it returns is estimate_scale's
+    over every pose so far, to the bit (it pre-integrates each interval once instead); none before
+    handover_min_s or with fewer than MIN_TRIPLETS triplets; the hand-over writes k = 1 / scale
+    with at least handover_scale_sigma, uncorrelated, and the estimate's accelerometer bias."""
+    from runtime.slam.config import MapSettings
+    from runtime.slam.imu_handover import MIN_TRIPLETS, ImuHandover
+    from runtime.slam.layout import BA_SLICE, CAMERA_DIM_SCALED, SCALE_INDEX
+    from runtime.slam.state import State
+
+    t, p, R, w, f = _motion(T=4.0, seed=2)
+    s_true = 0.6
+    rows = np.column_stack([t, w, f])
+    settings = MapSettings(handover_max_sigma=1.0)
+    h = ImuHandover(settings)
+    cam = np.arange(0, len(t), 7)
+    first = None
+    for n, j in enumerate(cam):
+        e = h.add(t[j], p[j] / s_true, R[j], rows)
+        if e is None:
+            continue
+        ref = estimate_scale(t[cam[:n + 1]], p[cam[:n + 1]] / s_true, R[cam[:n + 1]], t, w, f)
+        assert e.scale == ref.scale and np.array_equal(e.g_world, ref.g_world) and e.sigma_rel == ref.sigma_rel
+        assert e.triplets >= MIN_TRIPLETS and t[j] - t[0] >= settings.imu.handover_min_s
+        first = first if first is not None else (j, e)
+    assert first is not None and abs(first[1].scale / s_true - 1) < 0.02
+    state = State.from_camera(np.r_[np.zeros(3), 1.0, np.zeros(16), 1.0], np.eye(CAMERA_DIM_SCALED) * 0.01)
+    state.P[SCALE_INDEX, 0] = state.P[0, SCALE_INDEX] = 0.005
+    done = h.hand_over(state, first[1])
+    k = 1 / first[1].scale
+    assert state.x[SCALE_INDEX] == k and done.k == k
+    assert state.P[SCALE_INDEX, SCALE_INDEX] == (k * max(first[1].sigma_rel, settings.imu.handover_scale_sigma)) ** 2
+    assert not state.P[SCALE_INDEX, :SCALE_INDEX].any()
+    assert np.array_equal(state.x[BA_SLICE], first[1].accel_bias)
