@@ -14,14 +14,14 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from kinematics.camera import CameraIntrinsics
 
-from .features import FEATURE_DIMS
+from .features import FEATURE_DIMS, INVERSE_DEPTH
 from .state import State
 from .map_feature import MapFeature
 
@@ -47,6 +47,8 @@ class SavedMap:
     features: list[MapFeature]
     T_world_cam: np.ndarray
     camera: CameraIntrinsics
+    #: What fixed the map's unit when it was made (run.py's scale sources); "arbitrary" is no metre.
+    scale: str = "map"
 
     def state_with_camera(self, cam_dim: int, cfg) -> State:
         """A filter state of this map with a camera block that knows nothing yet: at the last
@@ -80,12 +82,49 @@ def check_map_path(path: str | Path) -> Path:
     return path
 
 
-def save_map(path: str | Path, slam) -> Path:
-    """Write the SLAM's current map to ``path`` (a .npz name, :func:`check_map_path`); returns it."""
+def similar_map(y: np.ndarray, P: np.ndarray, kinds: np.ndarray, anchors: np.ndarray, R: np.ndarray,
+                s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The features' state ``y`` (m,), covariance ``P`` (m, m) and anchors (N, 3, 3) in the world
+    ``p' = s R p`` (``R`` (3, 3) a rotation, ``s`` > 0). Exact and linear for both kinds: a point
+    maps as ``s R``; an inverse-depth feature's centre as ``s R``, its anchor turns with ``R`` (so
+    its angles stay) and its inverse depth divides by ``s``."""
+    R = np.asarray(R, float)
+    J = np.zeros(len(y))                       # the diagonal part; the 3x3 blocks below
+    blocks = []
+    i = 0
+    for kind in np.asarray(kinds, np.intp):
+        blocks.append(i)
+        if kind == INVERSE_DEPTH:
+            J[i + 3:i + 5], J[i + 5] = 1.0, 1.0 / s
+        i += int(FEATURE_DIMS[kind])
+    M = np.diag(J)
+    for i in blocks:
+        M[i:i + 3, i:i + 3] = s * R
+    y2 = M @ y
+    P2 = M @ P @ M.T
+    return y2, 0.5 * (P2 + P2.T), np.einsum("ij,njk->nik", R, anchors)
+
+
+def save_map(path: str | Path, slam, R_out_world: np.ndarray | None = None, scale: float = 1.0) -> Path:
+    """Write the SLAM's current map to ``path`` (a .npz name, :func:`check_map_path`); returns it.
+    ``R_out_world``, ``scale``: the similarity (about the origin) that takes the filter's world to
+    the one written, as for the trajectory (a natural start's unit and frame made metric and upright
+    by the IMU), so that a later session's map is in metres."""
     path = check_map_path(path)
     st = slam.state
     feats = slam.features
     cd = st.cam_dim
+    R = np.eye(3) if R_out_world is None else np.asarray(R_out_world, float)
+    y, P, anchors = st.x[cd:], st.P[cd:, cd:], st.anchors
+    T_world_cam = slam.T_world_cam() if slam.localised else np.full((4, 4), np.nan)
+    similar = scale != 1.0 or not np.array_equal(R, np.eye(3))
+    if similar:
+        y, P, anchors = similar_map(y, P, st.kinds, anchors, R, scale)
+        T_world_cam = T_world_cam.copy()
+        T_world_cam[:3, :3] = R @ T_world_cam[:3, :3]
+        T_world_cam[:3, 3] = scale * R @ T_world_cam[:3, 3]
+        turn = lambda v: None if v is None else R @ v               # noqa: E731
+        feats = [replace(f, r0=scale * R @ f.r0, R0=turn(f.R0), normal=turn(f.normal), rays0=None) for f in feats]
     t = slam.template_px
     ph = max((f.patch.shape[0] for f in feats if f.patch is not None), default=1)
     patches = np.zeros((len(feats), ph, ph), np.float32)
@@ -95,11 +134,10 @@ def save_map(path: str | Path, slam) -> Path:
             patches[i], has_patch[i] = f.patch, True
     nan3 = np.full(3, np.nan)
     header = {"format": FORMAT, "version": VERSION, "camera": slam.cam.to_dict(), "template_px": t,
-              "features": len(feats)}
+              "features": len(feats), "scale": slam.scale_source}
     arrays = dict(
         header=np.frombuffer(json.dumps(header).encode(), np.uint8),
-        y=st.x[cd:], P=st.P[cd:, cd:], kinds=st.kinds, anchors=st.anchors,
-        T_world_cam=slam.T_world_cam() if slam.localised else np.full((4, 4), np.nan),
+        y=y, P=P, kinds=st.kinds, anchors=anchors, T_world_cam=T_world_cam,
         ids=np.array([f.id for f in feats], np.int64), first_frame=np.array([f.first_frame for f in feats], np.int64),
         known=np.array([f.known for f in feats], bool), attempts=np.array([f.attempts for f in feats], np.int64),
         successes=np.array([f.successes for f in feats], np.int64),
@@ -180,7 +218,11 @@ def load_map(path: str | Path, camera: CameraIntrinsics | None = None) -> SavedM
         T = a["T_world_cam"]
         if not np.isfinite(T).all():
             T = np.eye(4)
-        saved = SavedMap(a["y"].astype(float), a["P"].astype(float), kinds, a["anchors"].astype(float), feats, T, cam)
+        scale = header.get("scale", "map")       # maps written before the key: as they were read then
+        if not isinstance(scale, str):
+            raise ValueError("scale")
+        saved = SavedMap(a["y"].astype(float), a["P"].astype(float), kinds, a["anchors"].astype(float), feats, T, cam,
+                         scale)
         if not (np.isfinite(saved.y).all() and np.isfinite(saved.P).all()):
             raise ValueError("non-finite")
         if np.abs(saved.y).max(initial=0.0) > MAX_MAP_VALUE or np.abs(saved.P).max(initial=0.0) > MAX_MAP_VARIANCE:

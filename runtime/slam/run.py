@@ -419,9 +419,10 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             log.trajectory(times[-1], T)
     else:
         (out / "trajectory.tum").write_text("# MonoSLAM: the camera was never localised in the map\n")
-    write_map_csv(out / "map.csv", slam, *((R_out, s_out) if slam.scale_source == "imu" else ()))
+    similarity = (R_out, s_out) if slam.scale_source == "imu" else ()
+    write_map_csv(out / "map.csv", slam, *similarity)
     if save_map is not None:
-        map_io.save_map(save_map, slam)
+        map_io.save_map(save_map, slam, *similarity)
     per_frame = [asdict(s) for s in slam.stats]
     proc = [s for s in slam.stats[1:] if not s.skipped]
     mean = lambda v: float(np.mean(v)) if len(v) else 0.0  # noqa: E731

@@ -348,7 +348,8 @@ class MonoSLAM:
         self.ids.next_id = max((f.id for f in feats), default=-1) + 1
         self.frame = 0
         self.t_prev = t
-        self.scale_source = "map"
+        # A map made with no metre (a natural start with nothing to scale it) stays without one.
+        self.scale_source = "arbitrary" if saved.scale == "arbitrary" else "map"
         self.stats.append(FrameStats(0, t, map_size=len(feats), lost=True))
 
     # -------------------------------------------------------------- per frame

@@ -250,3 +250,74 @@ def test_a_failed_save_leaves_the_previous_map(slam, tmp_path, monkeypatch):
 def test_saved_fields_are_map_features_fields():
     names = {f.name for f in fields(MapFeature)}
     assert set(SAVED_FIELDS) <= names
+
+
+def test_a_map_saved_through_a_similarity_is_the_same_map_in_the_new_world(slam, tmp_path):
+    """save_map with the IMU's rotation and scale: every feature's point (an inverse-depth one
+    through its conversion) is s R p of the filter's, its point covariance s^2 R P R^T, and the
+    pose, first views and normals are turned and scaled with it; the map's scale source is kept."""
+    from scipy.spatial.transform import Rotation
+
+    from runtime.slam.features import inverse_depth
+
+    R, s = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix(), 2.7
+    saved = load_map(save_map(tmp_path / "m.npz", slam, R, s), CAM)
+    st = slam.state
+    assert saved.scale == slam.scale_source == "target"
+
+    def points(y, kinds, anchors):
+        out, i = [], 0
+        for kind, A in zip(kinds, anchors):
+            d = 3 if kind == POINT else 6
+            yk = y[i:i + d]
+            out.append(yk if kind == POINT else inverse_depth.to_point(yk, A)[0])
+            i += d
+        return np.array(out)
+
+    def covariances(y, P, kinds, anchors):
+        out, i = [], 0
+        for kind, A in zip(kinds, anchors):
+            d = 3 if kind == POINT else 6
+            J = np.eye(3) if kind == POINT else inverse_depth.to_point(y[i:i + d], A)[1]
+            out.append(J @ P[i:i + d, i:i + d] @ J.T)
+            i += d
+        return np.array(out)
+
+    cd = st.cam_dim
+    before = points(st.x[cd:], st.kinds, st.anchors)
+    np.testing.assert_allclose(points(saved.y, saved.kinds, saved.anchors), s * before @ R.T, atol=1e-9)
+    C0 = covariances(st.x[cd:], st.P[cd:, cd:], st.kinds, st.anchors)
+    C1 = covariances(saved.y, saved.P, saved.kinds, saved.anchors)
+    np.testing.assert_allclose(C1, s**2 * np.einsum("ij,njk,lk->nil", R, C0, R), rtol=1e-9, atol=1e-15)
+    # The inverse-depth features keep their angles: their anchors turn instead.
+    idp = np.flatnonzero(st.kinds == INVERSE_DEPTH)
+    np.testing.assert_allclose(saved.anchors[idp], R @ st.anchors[idp])
+    T = slam.T_world_cam()
+    np.testing.assert_allclose(saved.T_world_cam[:3, :3], R @ T[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(saved.T_world_cam[:3, 3], s * R @ T[:3, 3], atol=1e-12)
+    for a, b in zip(saved.features, slam.features):
+        np.testing.assert_allclose(a.r0, s * R @ b.r0, atol=1e-12)
+        if b.R0 is not None:
+            np.testing.assert_allclose(a.R0, R @ b.R0, atol=1e-12)
+        if b.normal is not None:
+            np.testing.assert_allclose(a.normal, R @ b.normal, atol=1e-12)
+    np.testing.assert_allclose(saved.P, saved.P.T)
+
+
+def test_a_map_with_no_metre_starts_a_session_with_no_metre(slam, tmp_path):
+    """A natural start's map that nothing scaled is saved as arbitrary, and a session started from
+    it says so rather than calling its unit the map's metre; a map saved before the key was kept
+    reads as the map's scale, as it did."""
+    before = slam.scale_source
+    try:
+        slam.scale_source = "arbitrary"
+        saved = load_map(save_map(tmp_path / "a.npz", slam), CAM)
+    finally:
+        slam.scale_source = before
+    assert saved.scale == "arbitrary"
+    session = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
+    session.start_from_map(saved, 0.0)
+    assert session.scale_source == "arbitrary"
+    session = MonoSLAM(CAM, settings=MapSettings(use_imu=False))
+    session.start_from_map(load_map(save_map(tmp_path / "t.npz", slam), CAM), 0.0)
+    assert session.scale_source == "map"

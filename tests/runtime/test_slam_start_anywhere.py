@@ -34,6 +34,7 @@ def walk(tmp_path_factory):
         twin.close()
     copies = {}
     for name, drop in (("two_view", ("target.toml", "depth", "depth.txt", "imu.txt")),
+                       ("two_view_imu", ("target.toml", "depth", "depth.txt")),
                        ("depth", ("target.toml", "imu.txt"))):
         shutil.copytree(src, root / name, ignore=shutil.ignore_patterns(*drop))
         copies[name] = root / name
@@ -56,6 +57,33 @@ def test_two_view_start_tracks_a_walk_up_to_scale(walk, tmp_path):
     assert r.frames_before_start + r.frames == n and r.frames_before_start < 30
     assert e.matched == r.frames
     assert e.ate_sim3_rmse_m < 0.015, e
+
+
+@pytest.mark.slow
+def test_a_map_the_imu_scaled_is_saved_in_metres(walk, tmp_path):
+    """A two-view start with the IMU: the saved map is the one map.csv writes (metres, gravity
+    up), not the filter's own unit, and it carries the scale's source."""
+    from runtime.slam.map_io import load_map
+
+    src, seqs = walk
+    r = run_slam(seqs["two_view_imu"], tmp_path / "out", progress=False, save_map=tmp_path / "m.npz")
+    totals = json.loads((tmp_path / "out" / "stats.json").read_text())["totals"]
+    assert totals["scale"] == "imu" and r.lost_frames == 0
+    saved = load_map(tmp_path / "m.npz")
+    assert saved.scale == "imu"
+    from runtime.slam.features import INVERSE_DEPTH, inverse_depth
+
+    rows = np.genfromtxt(tmp_path / "out" / "map.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    pts, i = [], 0
+    for kind, A in zip(saved.kinds, saved.anchors):
+        d = 6 if kind == INVERSE_DEPTH else 3
+        pts.append(inverse_depth.to_point(saved.y[i:i + d], A)[0] if kind == INVERSE_DEPTH else saved.y[i:i + d])
+        i += d
+    np.testing.assert_allclose(np.array(pts), np.column_stack([rows["x"], rows["y"], rows["z"]]), atol=1e-9)
+    # The last pose is the trajectory's, which is in metres (the similarity onto the truth is ~1).
+    traj = read_trajectory(tmp_path / "out" / "trajectory.tum")
+    np.testing.assert_allclose(saved.T_world_cam[:3, 3], traj.p_world_cam[-1], atol=1e-6)
+    assert abs(trajectory_errors(traj, open_sequence(src).groundtruth).sim3_scale - 1) < 0.05
 
 
 @pytest.mark.slow
