@@ -444,6 +444,7 @@ class ImuSettings:
     handover_min_s: float = 1.0
     handover_max_sigma: float = 0.03
     handover_scale_sigma: float = 0.05
+    handover_gravity_sigma: float = 0.05   # rad: gravity's direction in the map, at the hand-over (3 deg)
 
 
 @dataclass(frozen=True, init=False)

@@ -5,10 +5,11 @@ knows nothing of gravity, so the IMU cannot drive the prediction at first. The f
 the camera alone while the camera's poses are kept; once the IMU's scale and gravity estimate
 over them (imu_scale.estimate_scale, the linear initialisation of Mur-Artal and Tardos 2017) is
 observed well enough, the IMU is handed the map: the camera block's scale state ``k`` (map
-units per metre, layout.py) takes the estimate with a prior wide enough for the filter to
-correct it, the accelerometer's bias takes the estimate's, and gravity in the map's frame is the
+units per metre, layout.py) and its gravity state ``g`` (the map's frame) take the estimate with
+priors wide enough for the filter to correct them, and the accelerometer's bias takes the
 estimate's. From then the IMU drives the prediction (inertial.py) and the filter refines ``k``
-with every frame: the scale then follows the IMU's accelerations rather than the camera-only
+and ``g`` with every frame (a gravity held at the estimate's, a degree or two off, put its error
+into ``k``): the scale then follows the IMU's accelerations rather than the camera-only
 filter's short-term motion, which overshoots them by a few percent (the constant-velocity model
 trades some translation for rotation). As ORB-SLAM3 initialises its IMU after a visual-only
 start, here in an EKF (Nutzi et al. 2011 keep such a scale state in theirs).
@@ -22,7 +23,7 @@ import numpy as np
 
 from .config import MapSettings
 from .imu_scale import STRIDE_S, ScaleEstimate, preintegrate, solve_scale
-from .layout import BA_SLICE, SCALE_INDEX
+from .layout import BA_SLICE, G_SLICE, SCALE_INDEX
 from .state import State
 
 #: The camera accelerated this much (RMS, m/s^2) for the scale to be observed.
@@ -32,6 +33,8 @@ TRY_EVERY_S = 0.25
 #: Frame triplets an estimate needs: three equations each for six unknowns (the scale, gravity's
 #: direction, the accelerometer's bias), twice over, so that its spread means something.
 MIN_TRIPLETS = 5
+#: Gravity's magnitude is known (m/s^2): only its direction in the map is the estimate's to learn.
+GRAVITY_MAGNITUDE_SIGMA = 0.05
 
 
 @dataclass(frozen=True)
@@ -93,16 +96,26 @@ class ImuHandover:
         return e
 
     def hand_over(self, state: State, e: ScaleEstimate) -> Handover:
-        """Write the estimate ``e`` into ``state`` (a 21-number camera block): ``k`` = 1 / scale,
-        uncorrelated, with a relative standard deviation of at least ``handover_scale_sigma``; the
-        accelerometer's bias the estimate's. Gravity is the caller's to give the prediction."""
+        """Write the estimate ``e`` into ``state`` (a 24-number camera block): ``k`` = 1 / scale,
+        with a relative standard deviation of at least ``handover_scale_sigma``; gravity ``g`` the
+        estimate's, its direction with ``handover_gravity_sigma`` (rad) and its magnitude with
+        GRAVITY_MAGNITUDE_SIGMA; both uncorrelated with the rest. The accelerometer's bias the
+        estimate's."""
         k = 1.0 / e.scale
-        sigma_k = k * max(e.sigma_rel, self.settings.imu.handover_scale_sigma)
+        s = self.settings.imu
+        sigma_k = k * max(e.sigma_rel, s.handover_scale_sigma)
+        g = np.asarray(e.g_world, float)
+        u = g / np.linalg.norm(g)
+        across = np.eye(3) - np.outer(u, u)
         x, P = state.x.copy(), state.P.copy()
         x[SCALE_INDEX] = k
-        P[SCALE_INDEX, :] = 0.0
-        P[:, SCALE_INDEX] = 0.0
+        x[G_SLICE] = g
+        for sl in (slice(SCALE_INDEX, SCALE_INDEX + 1), G_SLICE):
+            P[sl, :] = 0.0
+            P[:, sl] = 0.0
         P[SCALE_INDEX, SCALE_INDEX] = sigma_k**2
+        P[G_SLICE, G_SLICE] = (np.linalg.norm(g) * s.handover_gravity_sigma) ** 2 * across \
+            + GRAVITY_MAGNITUDE_SIGMA**2 * np.outer(u, u)
         x[BA_SLICE] = e.accel_bias
         state.x, state.P = x, P
         self.done = Handover(self._t_last, self._t_last - self._t_first, e, k, sigma_k)

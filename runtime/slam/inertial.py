@@ -17,8 +17,10 @@ White noise on ``f_m`` and ``omega_m`` (densities ``imu_accel_noise``, ``imu_gyr
 enters through ``G = dx_new/d(f, omega)``.
 
 ``k`` is 1 in a metric map. A map started from natural features has its own unit and the first
-camera's frame: there ``k`` (map units per metre) is a state and ``g`` the IMU's estimate of
-gravity in that frame (imu_scale.py), given when the IMU is handed the map.
+camera's frame: there ``k`` (map units per metre) and ``g`` (gravity in that frame, m/s^2) are
+states, started from the IMU's estimates when the IMU is handed the map (imu_handover.py), and
+refined by every frame from then: a degree off in gravity's direction is 0.17 m/s^2 of
+acceleration that would otherwise go into the scale.
 
 The samples are checked as they arrive (:class:`ImuStream`): non-finite values, values beyond
 a MEMS part's range (spikes) and samples out of time order are dropped and counted; a frame
@@ -46,12 +48,14 @@ GRAVITY = np.array([0.0, 0.0, -9.81])
                  rotvec_to_quat_jacobian_kernel)
 def imu_step_kernel(x_v, omega_m, f_m, d, g):
     """One IMU interval (the equations of the module docstring) with gravity ``g`` (3,) m/s^2
-    in the world frame: x_v_new, F = dx_new/dx_v (cd, cd) and G = dx_new/d(f_m, omega_m) (cd, 6),
-    for a camera block of 13, 19, 20 or 21 numbers."""
+    in the world frame (a 24-number block's own ``g`` instead): x_v_new, F = dx_new/dx_v
+    (cd, cd) and G = dx_new/d(f_m, omega_m) (cd, 6), for a camera block of 13, 19, 20 or 24."""
     cd = x_v.shape[0]
     biased = cd >= 19
-    scaled = cd >= 21
+    scaled = cd >= 24
     k = x_v[20] if scaled else 1.0
+    if scaled:
+        g = x_v[21:24]
     q = x_v[3:7]
     omega = omega_m.copy()
     f = f_m.copy()
@@ -90,6 +94,9 @@ def imu_step_kernel(x_v, omega_m, f_m, d, g):
     if scaled:
         F[0:3, 20] = 0.5 * d * d * a_m
         F[7:10, 20] = d * a_m
+        for i in range(3):
+            F[i, 21 + i] = 0.5 * d * d * k
+            F[7 + i, 21 + i] = d * k
     G = np.zeros((cd, 6))
     G[0:3, 0:3] = 0.5 * d * d * kR
     G[7:10, 0:3] = d * kR

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED, POSE_DIM, SCALE_INDEX,
-                     TD_INDEX, check_camera_dim)
+from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED, G_SLICE, POSE_DIM,
+                     SCALE_INDEX, TD_INDEX, check_camera_dim)
 from .quaternion import dq_dtheta_right
 
 
@@ -31,14 +31,16 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
     accelerometer's correlated with the attitude it was read through (as a new feature is with
     the camera), so that refining the attitude refines it; with ``gyro_bias`` (3,) rad/s, a start's
     own estimate of the gyro's bias with standard deviation ``gyro_bias_sigma``, that one for the
-    gyro's. Without ``cfg`` the bias entries are left zero. The map's scale ``k`` (a 21-number
-    block) starts at 1 with no variance: nothing observes it until the IMU is handed the map
-    (system.MonoSLAM's hand-over sets it from the IMU's estimate)."""
+    gyro's. Without ``cfg`` the bias entries are left zero. The map's scale ``k`` and gravity
+    ``g`` (a 24-number block) start at 1 and the world's gravity with no variance: nothing
+    observes them until the IMU is handed the map (imu_handover.py sets them from the IMU's
+    estimate)."""
     cam_dim = check_camera_dim(cam_dim)
     x_v = np.zeros(cam_dim)
     x_v[0:3], x_v[3:7] = r, q
     if cam_dim == CAMERA_DIM_SCALED:
         x_v[SCALE_INDEX] = 1.0
+        x_v[G_SLICE] = (0.0, 0.0, -9.81)
     P = np.zeros((cam_dim, cam_dim))
     P[:7, :7] = P_pose
     P[7:10, 7:10] = np.eye(3) * sigma_v**2

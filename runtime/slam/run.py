@@ -22,7 +22,7 @@ from .corners import grey
 from .features import FEATURE_NAMES, INVERSE_DEPTH, inverse_depth
 from .filter import innovation_covariances
 from .measurement import predict, predict_points
-from .state import SCALE_INDEX, TD_INDEX
+from .state import G_SLICE, SCALE_INDEX, TD_INDEX
 from .system import MonoSLAM, SlamStartError
 from .imu_scale import gravity_aligned
 
@@ -205,7 +205,9 @@ def filter_scale(slam: MonoSLAM, handed) -> dict:
     return {"handover_after_s": handed.t - t0, "scale_at_handover": 1.0 / handed.k,
             "scale_first_3s": 1.0 / early if early else None, "scale": 1.0 / st.k,
             "sigma_rel": float(np.sqrt(max(st.P[SCALE_INDEX, SCALE_INDEX], 0.0))) / st.k,
-            "g_world": np.asarray(slam.track.gravity, float).tolist()}
+            "g_world_at_handover": np.asarray(handed.estimate.g_world, float).tolist(),
+            "g_world": st.gravity.tolist(),
+            "g_sigma_deg": float(np.degrees(np.sqrt(max(np.trace(st.P[G_SLICE, G_SLICE]), 0.0))) / 9.81)}
 
 
 def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
@@ -395,7 +397,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
     if natural and slam.scale_source in ("arbitrary", "imu") and seq.imu is not None and len(times) > 2:
         imu_scale = scale_from_imu(np.array(times), np.array(poses), seq.imu)
         if handed is not None:
-            R_out, s_out = gravity_aligned(slam.track.gravity), 1.0 / slam.state.k
+            R_out, s_out = gravity_aligned(slam.state.gravity), 1.0 / slam.state.k
             imu_scale = dict(imu_scale or {}, filter=filter_scale(slam, handed))
             if progress:
                 f = imu_scale["filter"]

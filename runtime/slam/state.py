@@ -45,11 +45,11 @@ import scipy.linalg
 
 from .kernels import compiled_kernel
 from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED,
-                     CAMERA_NAMES, FEATURE_DIMS, FEATURE_NAMES, NOISE_DIM, POSE_DIM, Q_SLICE, R_SLICE, SCALE_INDEX,
-                     TD_INDEX, V_SLICE, W_SLICE, check_camera_dim, feature_starts, state_size)
+                     CAMERA_NAMES, FEATURE_DIMS, FEATURE_NAMES, G_SLICE, NOISE_DIM, POSE_DIM, Q_SLICE, R_SLICE,
+                     SCALE_INDEX, TD_INDEX, V_SLICE, W_SLICE, check_camera_dim, feature_starts, state_size)
 
 __all__ = ["BA_SLICE", "BG_SLICE", "CAMERA_DIM", "CAMERA_DIM_BIASED", "CAMERA_DIM_SCALED", "CAMERA_DIM_TIMED",
-           "NOISE_DIM", "POSE_DIM", "Q_SLICE", "R_SLICE", "SCALE_INDEX", "TD_INDEX", "V_SLICE", "W_SLICE",
+           "G_SLICE", "NOISE_DIM", "POSE_DIM", "Q_SLICE", "R_SLICE", "SCALE_INDEX", "TD_INDEX", "V_SLICE", "W_SLICE",
            "SlamNumericalError", "State", "StateSnapshot",
            "check_covariance", "check_mean", "feature_starts", "mirror_upper", "state_size"]
 
@@ -277,6 +277,11 @@ class State:
     @property
     def has_scale(self) -> bool:
         return self.cam_dim == CAMERA_DIM_SCALED
+
+    @property
+    def gravity(self) -> np.ndarray | None:
+        """Gravity in the map's frame (3,) m/s^2 where the block has it (a natural start's), else None."""
+        return self.x[G_SLICE].copy() if self.has_scale else None
 
     @property
     def k(self) -> float:

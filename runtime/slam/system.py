@@ -443,7 +443,6 @@ class MonoSLAM:
         if e is None:
             return
         h = self.handover.hand_over(st, e)
-        self.track.gravity = np.array(e.g_world, float)
         self.scale_source = "imu"
         self.messages.append(f"slam: the IMU takes the map at frame {self.frame}, {h.seconds:.1f} s after the start: "
                              f"{e.scale:.4g} m per map unit (+- {100 * e.sigma_rel:.1f}%, the camera's acceleration "

@@ -14,7 +14,7 @@ from .config import MapSettings, SlamConfig
 from .covariance_watch import CovarianceWatch
 from .filter import FrameUpdate
 from .impulses import ImpulseAdapter
-from .inertial import GRAVITY, predict_imu
+from .inertial import predict_imu
 from .layout import W_SLICE
 from .mapping import FeatureIds, ImageNoise, MapManager
 from .measure import Measurement
@@ -50,9 +50,6 @@ class Track:
         self.status = TrackingStatus.TRACKING if localised else TrackingStatus.INITIALISING
         self.score = 0.0
         self.covariance = CovarianceWatch()     # the full PSD check, beside the tracker
-        # Gravity in the world frame, m/s^2: a target's or saved map's is upright; a natural
-        # start's frame is the first camera's, and the IMU's estimate is set at its hand-over.
-        self.gravity = GRAVITY
 
     # -- the map's pieces, as the facade and its callers name them --
     @property
@@ -101,8 +98,7 @@ class Track:
         self.state.t_ref = t1 - t
         if imu_rows is not None:
             try:
-                predict_imu(self.state, imu_rows, t0, t1, self.cfg, noise_gain=noise_gain, covered_until=covered_until,
-                            gravity=self.gravity)
+                predict_imu(self.state, imu_rows, t0, t1, self.cfg, noise_gain=noise_gain, covered_until=covered_until)
                 return True
             except (SlamNumericalError, ValueError):
                 pass

@@ -68,15 +68,17 @@ def orientation_covariance(P_qq, q) -> np.ndarray:
 # -- states ------------------------------------------------------------------------------------
 
 def random_camera(rng, w_scale: float = 1.0, cam_dim: int = CAMERA_DIM) -> np.ndarray:
-    """A camera block (13, 19, 20 or 21,): random pose, velocities, (19) small biases, (20) a
-    clock offset of a few ms and (21) a map's scale of 0.5-2 units per metre."""
+    """A camera block (13, 19, 20 or 24,): random pose, velocities, (19) small biases, (20) a
+    clock offset of a few ms and (24) a map's scale of 0.5-2 units per metre and gravity (9.81
+    m/s^2) in a random direction of its frame."""
     x = np.concatenate([rng.normal(0, 1, 3), random_quat(rng), rng.normal(0, 0.5, 3), rng.normal(0, w_scale, 3)])
     if cam_dim > CAMERA_DIM:
         x = np.concatenate([x, rng.normal(0, 0.01, 3), rng.normal(0, 0.1, 3)])
     if cam_dim > 19:
         x = np.r_[x, rng.normal(0, 0.004)]
     if cam_dim > 20:
-        x = np.r_[x, rng.uniform(0.5, 2.0)]
+        u = rng.normal(size=3)
+        x = np.r_[x, rng.uniform(0.5, 2.0), 9.81 * u / np.linalg.norm(u)]
     return x
 
 

@@ -45,8 +45,8 @@ def test_every_flat_name_lists_its_group_s_value_and_is_refused_as_an_attribute(
     # its rescue's area (measure.rescue_area_px), the depth prior's spread
     # (inverse_depth.scene_depth_spread) and its two relative widths (inverse_depth.scene_relative_width,
     # inverse_depth.two_view_relative_width) and the IMU's hand-over's four (imu.imu_handover,
-    # imu.handover_*)
-    assert len(MAP_FLAT) + 2 == 93 + 3 + 1 + 1 + 2 + 4 and len(SLAM_FLAT) + 1 == 29
+    # imu.handover_*) and its gravity's prior (imu.handover_gravity_sigma)
+    assert len(MAP_FLAT) + 2 == 93 + 3 + 1 + 1 + 2 + 4 + 1 and len(SLAM_FLAT) + 1 == 29
     assert set(MapSettings().flat()) == set(MAP_FLAT) | {"features", "warp"}
 
 

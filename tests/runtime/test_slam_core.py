@@ -128,7 +128,7 @@ def test_layout_of_a_mixed_state():
 
 def test_state_refuses_inconsistent_layouts():
     x = np.r_[0, 0, 0, 1.0, 0, 0, 0, np.zeros(6)]
-    with pytest.raises(ValueError, match="13 numbers, 19 with IMU biases, 20 with the IMU.s clock offset as well or 21 with the map.s scale; got 14"):
+    with pytest.raises(ValueError, match="13 numbers, 19 with IMU biases, 20 with the IMU.s clock offset as well or 24 with the map.s scale and gravity; got 14"):
         State(np.r_[x, 0.0], np.eye(14), cam_dim=14)
     with pytest.raises(ValueError, match="has 16 numbers, got 15"):
         State(np.r_[x, 0, 0], np.eye(15), CAMERA_DIM, [POINT])

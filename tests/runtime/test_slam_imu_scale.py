@@ -108,8 +108,8 @@ def test_the_hand_over_estimates_as_the_whole_run_s_estimate_would_and_writes_k(
     handover_min_s or with fewer than MIN_TRIPLETS triplets; the hand-over writes k = 1 / scale
     with at least handover_scale_sigma, uncorrelated, and the estimate's accelerometer bias."""
     from runtime.slam.config import MapSettings
-    from runtime.slam.imu_handover import MIN_TRIPLETS, ImuHandover
-    from runtime.slam.layout import BA_SLICE, CAMERA_DIM_SCALED, SCALE_INDEX
+    from runtime.slam.imu_handover import GRAVITY_MAGNITUDE_SIGMA, MIN_TRIPLETS, ImuHandover
+    from runtime.slam.layout import BA_SLICE, CAMERA_DIM_SCALED, G_SLICE, SCALE_INDEX
     from runtime.slam.state import State
 
     t, p, R, w, f = _motion(T=4.0, seed=2)
@@ -128,11 +128,21 @@ def test_the_hand_over_estimates_as_the_whole_run_s_estimate_would_and_writes_k(
         assert e.triplets >= MIN_TRIPLETS and t[j] - t[0] >= settings.imu.handover_min_s
         first = first if first is not None else (j, e)
     assert first is not None and abs(first[1].scale / s_true - 1) < 0.02
-    state = State.from_camera(np.r_[np.zeros(3), 1.0, np.zeros(16), 1.0], np.eye(CAMERA_DIM_SCALED) * 0.01)
+    state = State.from_camera(np.r_[np.zeros(3), 1.0, np.zeros(16), 1.0, 0.0, 0.0, -9.81], np.eye(CAMERA_DIM_SCALED) * 0.01)
     state.P[SCALE_INDEX, 0] = state.P[0, SCALE_INDEX] = 0.005
+    state.P[G_SLICE.start, 1] = state.P[1, G_SLICE.start] = 0.005
     done = h.hand_over(state, first[1])
     k = 1 / first[1].scale
     assert state.x[SCALE_INDEX] == k and done.k == k
     assert state.P[SCALE_INDEX, SCALE_INDEX] == (k * max(first[1].sigma_rel, settings.imu.handover_scale_sigma)) ** 2
     assert not state.P[SCALE_INDEX, :SCALE_INDEX].any()
     assert np.array_equal(state.x[BA_SLICE], first[1].accel_bias)
+    # Gravity: the estimate's, uncorrelated, its direction's prior across it and its magnitude's along it.
+    g = np.asarray(first[1].g_world)
+    u = g / np.linalg.norm(g)
+    assert np.array_equal(state.x[G_SLICE], g) and not state.P[G_SLICE, :G_SLICE.start].any()
+    P_g = state.P[G_SLICE, G_SLICE]
+    np.testing.assert_allclose(u @ P_g @ u, GRAVITY_MAGNITUDE_SIGMA**2, rtol=1e-9)
+    across = np.cross(u, [1.0, 0.0, 0.0])
+    across /= np.linalg.norm(across)
+    np.testing.assert_allclose(across @ P_g @ across, (9.81 * settings.imu.handover_gravity_sigma) ** 2, rtol=1e-3)

@@ -23,6 +23,7 @@ from runtime.slam.quaternion import normalise_quaternion_jacobian, quat_to_rotat
 from runtime.slam.state import (
     BA_SLICE,
     BG_SLICE,
+    G_SLICE,
     CAMERA_DIM,
     CAMERA_DIM_BIASED,
     CAMERA_DIM_SCALED,
@@ -53,9 +54,12 @@ def test_imu_step_jacobians(d, cam_dim):
     for _ in range(3):
         x_v = st.random_camera(rng, 1.0, cam_dim)
         x_v[Q_SLICE] *= 1.1           # defined on R^4, like the motion model's
+        g = Rotation.random(random_state=rng.integers(1 << 30)).apply(G_WORLD)   # a natural start's map frame
         if cam_dim == CAMERA_DIM_SCALED:
             x_v[SCALE_INDEX] = rng.uniform(0.5, 3.0)
-        g = Rotation.random(random_state=rng.integers(1 << 30)).apply(G_WORLD)   # a natural start's map frame
+            x_v[G_SLICE] = g                   # its own gravity state: the argument is then not read
+            assert np.array_equal(imu_step_and_jacobians(x_v, np.ones(3), np.ones(3), d, -g)[0],
+                                  imu_step_and_jacobians(x_v, np.ones(3), np.ones(3), d, g)[0])
         omega, f = rng.normal(0, 1.0, 3), rng.normal(0, 5.0, 3)
         x_new, F, G = imu_step_and_jacobians(x_v, omega, f, d, g)
         assert F.shape == (cam_dim, cam_dim) and G.shape == (cam_dim, 6)
@@ -64,6 +68,7 @@ def test_imu_step_jacobians(d, cam_dim):
         st.assert_jacobian(G, st.fd_jacobian(lambda b: imu_step_and_jacobians(x_v, b[3:], b[:3], d, g)[0], u))
         if cam_dim == CAMERA_DIM_SCALED and d > 0:
             assert np.abs(F[:3, SCALE_INDEX]).max() > 0.1 * d * d      # the scale's column is in use
+            assert np.diag(F[7:10, G_SLICE]).min() > 0.4 * d                 # and gravity's
         if cam_dim >= CAMERA_DIM_BIASED:
             assert np.array_equal(x_new[13:], x_v[13:])          # biases (and the clock offset) held
             # A bias is an offset of the sample: the step with biases b equals the step without
@@ -77,7 +82,7 @@ def test_imu_step_jacobians(d, cam_dim):
 
 def test_a_step_in_a_maps_units_is_the_metric_step_seen_through_the_map():
     """A map whose unit is s metres and whose frame is turned by R_map_world: the step of the
-    21-number block there (k = 1 / s, gravity R_map_world g) is the metric step mapped into it."""
+    24-number block there (k = 1 / s, gravity R_map_world g) is the metric step mapped into it."""
     rng = np.random.default_rng(5)
     for _ in range(3):
         x = st.random_camera(rng, 1.0, CAMERA_DIM_BIASED)
@@ -85,14 +90,16 @@ def test_a_step_in_a_maps_units_is_the_metric_step_seen_through_the_map():
         omega, f, d = rng.normal(0, 1.0, 3), rng.normal(0, 5.0, 3), 0.02
         x_new, _, _ = imu_step_and_jacobians(x, omega, f, d)          # metric, gravity -z
         q_m = (R_mw * Rotation.from_quat(np.r_[x[4:7], x[3]])).as_quat()
-        y = np.r_[R_mw.apply(x[R_SLICE]) / s_m, q_m[3], q_m[:3], R_mw.apply(x[V_SLICE]) / s_m, x[10:19], 0.0, 1 / s_m]
-        y_new, _, _ = imu_step_and_jacobians(y, omega, f, d, R_mw.apply(G_WORLD))
+        y = np.r_[R_mw.apply(x[R_SLICE]) / s_m, q_m[3], q_m[:3], R_mw.apply(x[V_SLICE]) / s_m, x[10:19], 0.0, 1 / s_m,
+                  R_mw.apply(G_WORLD)]
+        y_new, _, _ = imu_step_and_jacobians(y, omega, f, d)          # gravity: the block's own
         np.testing.assert_allclose(y_new[R_SLICE], R_mw.apply(x_new[R_SLICE]) / s_m, atol=1e-12)
         np.testing.assert_allclose(y_new[V_SLICE], R_mw.apply(x_new[V_SLICE]) / s_m, atol=1e-12)
         q_new = R_mw * Rotation.from_quat(np.r_[x_new[4:7], x_new[3]] / np.linalg.norm(x_new[Q_SLICE]))
         r_err = q_new.inv() * Rotation.from_quat(np.r_[y_new[4:7], y_new[3]] / np.linalg.norm(y_new[Q_SLICE]))
         assert r_err.magnitude() < 1e-12
-        assert y_new[SCALE_INDEX] == 1 / s_m                        # the scale is a constant
+        assert y_new[SCALE_INDEX] == 1 / s_m                        # the scale and gravity are constants
+        assert np.array_equal(y_new[G_SLICE], y[G_SLICE])
 
 
 def test_intervals_cover_the_frame_with_the_sample_holding_over_each():
@@ -212,7 +219,8 @@ def test_prediction_covariance_is_the_product_of_the_intervals():
 # -- the bias states converge ------------------------------------------------------------------
 
 def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int = 210, fps: int = 30,
-                        t_d: float | None = None, s_map: float | None = None, k_error: float = 0.0) -> State:
+                        t_d: float | None = None, s_map: float | None = None, k_error: float = 0.0,
+                        g_error_rad: float = 0.0, truth: dict | None = None) -> State:
     """A camera swaying and turning (about 0.5 rad, 0.2 m) in front of known points, its
     IMU with constant biases ``b_g``, ``b_a`` and white noise of the filter's own densities,
     integrated with the filter's own zero-order hold (so the IMU model is exact); the filter
@@ -220,9 +228,11 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
     updated by the visible points' pixels (1 px) every frame. With ``t_d`` (s) the IMU's
     stamps run that far ahead of the camera's clock and the filter has the clock-offset state
     (from zero, its configured prior). With ``s_map`` (metres per map unit) the filter runs in
-    a natural start's map: its frame turned from the world's, its unit s_map metres, gravity
-    given in it, the scale state k starting ``k_error`` (relative) off 1 / s_map with a 5%
-    prior. Returns the final state."""
+    a natural start's map: its frame turned from the world's, its unit s_map metres, the scale
+    state k starting ``k_error`` (relative) off 1 / s_map with a 5% prior, the gravity state
+    starting turned ``g_error_rad`` off the map's gravity (about a random axis across it) with the
+    hand-over's prior (0.05 rad across, 0.05 m/s^2 along); ``truth`` then gets the map's true
+    gravity (``"g_map"``). Returns the final state."""
     rng = np.random.default_rng(seed)
     cam = st.PINHOLE
     dt = 1.0 / rate_hz
@@ -267,21 +277,27 @@ def simulate_biased_imu(seed: int, b_g, b_a, seconds: float = 8.0, rate_hz: int 
         x_v[R_SLICE], x_v[V_SLICE] = R_mw.apply(x_v[R_SLICE]) / s_m, R_mw.apply(x_v[V_SLICE]) / s_m
         x_v[Q_SLICE] = np.r_[q_m[3], q_m[:3]]
         x_v[SCALE_INDEX] = (1 + k_error) / s_m
+        g_map = R_mw.apply(G_WORLD)
+        axis = np.cross(g_map, rng.normal(size=3))
+        x_v[G_SLICE] = Rotation.from_rotvec(g_error_rad * axis / np.linalg.norm(axis)).apply(g_map)
+        if truth is not None:
+            truth["g_map"] = g_map
         sig_r /= s_m
     P_v = st.camera_covariance(x_v[Q_SLICE], sig_r, 1e-3, 0.01 / s_m, 0.05, cam_dim, cfg.imu.gyro_bias_sigma0,
                                cfg.imu.accel_bias_sigma0, cfg.imu.time_offset_sigma0)
     if s_map is not None:
         P_v[TD_INDEX, TD_INDEX] = 0.0      # the clock is exact here
         P_v[SCALE_INDEX, SCALE_INDEX] = (0.05 / s_m) ** 2
+        u = x_v[G_SLICE] / np.linalg.norm(x_v[G_SLICE])
+        P_v[G_SLICE, G_SLICE] = (9.81 * 0.05) ** 2 * (np.eye(3) - np.outer(u, u)) + 0.05**2 * np.outer(u, u)
     s = State.from_camera(x_v, P_v)
     sig_y = 0.001
     for y in Y:
         s.add_feature(POINT, R_mw.apply(y + rng.normal(0, sig_y, 3)) / s_m, (sig_y / s_m) ** 2 * np.eye(3),
                       np.zeros((3, s.n)))
-    g_map = R_mw.apply(G_WORLD)
     for k in range(k0 + 1, n // per_frame + 1):
         j0, j1 = (k - 1) * per_frame, k * per_frame
-        predict_imu(s, rows if t_d is not None else rows[j0:j1 + 1], t[j0], t[j1], cfg, gravity=g_map)
+        predict_imu(s, rows if t_d is not None else rows[j0:j1 + 1], t[j0], t[j1], cfg)
         xt = states[j1]
         uv = st.pixels(cam, quat_to_rotation(xt[Q_SLICE]), xt[:3], Y)
         seen = np.flatnonzero(in_image(cam, uv, margin=20.0))
@@ -321,18 +337,32 @@ def test_the_clock_offset_state_converges_to_the_imus_offset(seed, t_d):
     assert sd < 0.3 * CFG.imu.time_offset_sigma0
 
 
-@pytest.mark.parametrize("seed, s_map, k_error", [(1, 0.37, 0.05), (2, 2.6, -0.06)])
-def test_the_scale_state_converges_to_the_maps_unit(seed, s_map, k_error):
+@pytest.mark.parametrize("seed, s_map, k_error, g_error_deg", [(1, 0.37, 0.05, 0.0), (2, 2.6, -0.06, 0.0),
+                                                                (1, 0.37, 0.05, 2.5), (2, 2.6, -0.06, -3.0)])
+def test_the_scale_and_gravity_states_converge_to_the_maps(seed, s_map, k_error, g_error_deg):
     """A natural start's map (its own frame, a unit of s_map metres) handed to the IMU with the
-    scale 5-6% off: the scale state ends within 3 sigma and 1% of 1 / s_map, its sigma well below
-    the prior's 5%; the biases are learnt as in a metric map."""
+    scale 5-6% off and gravity's direction 0-3 degrees off: the scale state ends within 3 sigma
+    and 2% of 1 / s_map (gravity learnt beside it; 1% when gravity was given exactly), its sigma
+    well below the prior's 5%; gravity within 0.5 degrees of the map's and its own 3 sigma; the
+    biases are learnt as in a metric map."""
     b_g, b_a = np.array([0.004, -0.006, 0.003]), np.array([0.05, -0.04, 0.06])
-    s = simulate_biased_imu(seed, b_g, b_a, s_map=s_map, k_error=k_error)
+    truth = {}
+    s = simulate_biased_imu(seed, b_g, b_a, s_map=s_map, k_error=k_error, g_error_rad=np.radians(g_error_deg),
+                            truth=truth)
     k, sd = s.x[SCALE_INDEX], np.sqrt(s.P[SCALE_INDEX, SCALE_INDEX])
-    print(f"\nk {k:.5f} per m (true {1 / s_map:.5f}, sd {sd:.5f}); accel bias {np.round(100 * s.b_a, 2)} cm/s^2")
-    assert abs(k * s_map - 1) < 0.01 and abs(k - 1 / s_map) < 3 * sd
+    g, g_map = s.x[G_SLICE], truth["g_map"]
+    print(f"\nk {k:.5f} per m (true {1 / s_map:.5f}, sd {sd:.5f}); accel bias {np.round(100 * s.b_a, 2)} cm/s^2; "
+          f"gravity {g.round(3)} |g| {np.linalg.norm(g):.3f}")
+    assert abs(k * s_map - 1) < 0.02 and abs(k - 1 / s_map) < 3 * sd
     assert sd * s_map < 0.3 * 0.05
     assert np.linalg.norm(s.b_a - b_a) < 0.25 * np.linalg.norm(b_a)
+    # Gravity: the angle to the map's, and the error within 3 sigma of the state's own covariance.
+    angle = np.arccos(np.clip(g @ g_map / np.linalg.norm(g) / 9.81, -1, 1))
+    e = g - g_map
+    print(f"gravity {np.degrees(angle):.2f} deg off (from {abs(g_error_deg)}), Mahalanobis "
+          f"{np.sqrt(e @ np.linalg.solve(s.P[G_SLICE, G_SLICE], e)):.2f}")
+    assert angle < np.radians(0.5) and abs(np.linalg.norm(g) - 9.81) < 0.05
+    assert e @ np.linalg.solve(s.P[G_SLICE, G_SLICE], e) < 3**2 * 3
 
 
 # -- ImuStream ---------------------------------------------------------------------------------
