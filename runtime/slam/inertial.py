@@ -157,7 +157,7 @@ def imu_intervals(imu: np.ndarray, t0: float, t1: float, covered_until: float = 
 
 
 def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamConfig, noise_gain: float = 1.0,
-                covered_until: float = np.inf, gravity: np.ndarray = GRAVITY) -> None:
+                covered_until: float = np.inf) -> None:
     """The EKF prediction from ``t0`` to ``t1`` through the IMU samples, in place: ``P_vv``
     interval by interval with each interval's noise, the camera-map cross-covariance by the
     product of the intervals' Jacobians; then ``q`` is renormalised with its Jacobian.
@@ -167,14 +167,13 @@ def predict_imu(state: State, imu: np.ndarray, t0: float, t1: float, cfg: SlamCo
     motion (the frame came before the samples covering its end): that stretch takes the
     extra noise of a rate and a specific force that may have changed by ``imu_hold_rate_sigma``
     and ``imu_hold_accel_sigma`` (a white-noise density ``sigma sqrt(d)`` over its length d).
-    ``gravity`` (3,) m/s^2 in the world frame (the IMU's estimate in a natural start's map)."""
+    Gravity is the world's (GRAVITY), or a natural start's map's own state (its 24-number block)."""
     ds, omegas, fs, held = imu_intervals(imu, t0, t1, covered_until)
     cd = state.cam_dim
     sa = noise_gain * np.sqrt(cfg.imu.imu_accel_noise**2 + held * cfg.imu.imu_hold_accel_sigma**2 * ds)
     sg = noise_gain * np.sqrt(cfg.imu.imu_gyro_noise**2 + held * cfg.imu.imu_hold_rate_sigma**2 * ds)
     x_v, P_vv, F_total = _propagate_kernel(state.x[:cd].copy(), state.P[:cd, :cd].copy(),
-                                           ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg,
-                                           np.asarray(gravity, float))
+                                           ds, np.ascontiguousarray(omegas), np.ascontiguousarray(fs), sa, sg, GRAVITY)
     bias_walk(P_vv, t1 - t0, cfg)
     apply_camera_prediction(state, x_v, F_total, P_vv, "inertial predict")
 

@@ -207,7 +207,16 @@ def filter_scale(slam: MonoSLAM, handed) -> dict:
             "sigma_rel": float(np.sqrt(max(st.P[SCALE_INDEX, SCALE_INDEX], 0.0))) / st.k,
             "g_world_at_handover": np.asarray(handed.estimate.g_world, float).tolist(),
             "g_world": st.gravity.tolist(),
-            "g_sigma_deg": float(np.degrees(np.sqrt(max(np.trace(st.P[G_SLICE, G_SLICE]), 0.0))) / 9.81)}
+            "g_sigma_deg": gravity_direction_sigma_deg(st.gravity, st.P[G_SLICE, G_SLICE])}
+
+
+def gravity_direction_sigma_deg(g: np.ndarray, P_g: np.ndarray) -> float:
+    """The standard deviation, degrees, of gravity's direction ``g`` (3,) m/s^2 with covariance
+    ``P_g`` (3, 3): its spread across ``g`` (both axes together), over its length; the magnitude's
+    variance along ``g`` is left out."""
+    u = g / np.linalg.norm(g)
+    A = np.eye(3) - np.outer(u, u)
+    return float(np.degrees(np.sqrt(max(np.trace(A @ P_g @ A), 0.0)) / np.linalg.norm(g)))
 
 
 def wait_for_natural_start(slam: MonoSLAM, seq, f, frames, n: int, waits: dict[str, int], progress: bool):
