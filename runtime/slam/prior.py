@@ -7,6 +7,7 @@ import numpy as np
 
 from .layout import (BA_SLICE, BG_SLICE, CAMERA_DIM_BIASED, CAMERA_DIM_SCALED, CAMERA_DIM_TIMED, G_SLICE, POSE_DIM,
                      SCALE_INDEX, TD_INDEX, check_camera_dim)
+from .inertial import GRAVITY
 from .quaternion import dq_dtheta_right
 
 
@@ -40,7 +41,7 @@ def camera_prior(cam_dim: int, r, q, P_pose: np.ndarray, sigma_v: float, sigma_w
     x_v[0:3], x_v[3:7] = r, q
     if cam_dim == CAMERA_DIM_SCALED:
         x_v[SCALE_INDEX] = 1.0
-        x_v[G_SLICE] = (0.0, 0.0, -9.81)
+        x_v[G_SLICE] = GRAVITY
     P = np.zeros((cam_dim, cam_dim))
     P[:7, :7] = P_pose
     P[7:10, 7:10] = np.eye(3) * sigma_v**2
