@@ -149,13 +149,14 @@ def test_the_hand_over_estimates_as_the_whole_run_s_estimate_would_and_writes_k(
 
 
 def test_gravity_direction_sigma_counts_only_the_spread_across_gravity():
-    """stats.json's g_sigma_deg: gravity's direction with 0.05 rad per axis across it is 0.05 sqrt(2)
+    """stats.json's g_sigma_deg: gravity's direction with sigma rad per axis across it is sigma sqrt(2)
     rad over both axes, whatever its magnitude's variance along it."""
     from runtime.slam.run import gravity_direction_sigma_deg
 
     g = np.array([1.0, 7.0, -6.8])
     u = g / np.linalg.norm(g)
-    across = (np.linalg.norm(g) * 0.05) ** 2 * (np.eye(3) - np.outer(u, u))
-    for along in (0.0, 0.05**2, 4.0):
-        np.testing.assert_allclose(gravity_direction_sigma_deg(g, across + along * np.outer(u, u)),
-                                   np.degrees(0.05 * np.sqrt(2)), rtol=1e-12)
+    for sigma in (0.05, 0.004):
+        across = (np.linalg.norm(g) * sigma) ** 2 * (np.eye(3) - np.outer(u, u))
+        for along in (0.0, 0.05**2, 4.0):
+            np.testing.assert_allclose(gravity_direction_sigma_deg(g, across + along * np.outer(u, u)),
+                                       np.degrees(sigma * np.sqrt(2)), rtol=1e-12)
