@@ -105,6 +105,15 @@ def similar_map(y: np.ndarray, P: np.ndarray, kinds: np.ndarray, anchors: np.nda
     return y2, 0.5 * (P2 + P2.T), np.einsum("ij,njk->nik", R, anchors)
 
 
+def similar_poses(T_world_cam: np.ndarray, R: np.ndarray, s: float) -> np.ndarray:
+    """Camera-to-world poses ``T_world_cam`` (..., 4, 4) in the world ``p' = s R p`` (``R`` (3, 3)
+    a rotation, ``s`` > 0): the orientation turned by ``R``, the centre moved as a point."""
+    T = np.array(T_world_cam, float)
+    T[..., :3, :3] = R @ T[..., :3, :3]
+    T[..., :3, 3] = s * T[..., :3, 3] @ R.T
+    return T
+
+
 def save_map(path: str | Path, slam, R_out_world: np.ndarray | None = None, scale: float = 1.0) -> Path:
     """Write the SLAM's current map to ``path`` (a .npz name, :func:`check_map_path`); returns it.
     ``R_out_world``, ``scale``: the similarity (about the origin) that takes the filter's world to
@@ -120,9 +129,7 @@ def save_map(path: str | Path, slam, R_out_world: np.ndarray | None = None, scal
     similar = scale != 1.0 or not np.array_equal(R, np.eye(3))
     if similar:
         y, P, anchors = similar_map(y, P, st.kinds, anchors, R, scale)
-        T_world_cam = T_world_cam.copy()
-        T_world_cam[:3, :3] = R @ T_world_cam[:3, :3]
-        T_world_cam[:3, 3] = scale * R @ T_world_cam[:3, 3]
+        T_world_cam = similar_poses(T_world_cam, R, scale)
         turn = lambda v: None if v is None else R @ v               # noqa: E731
         feats = [replace(f, r0=scale * R @ f.r0, R0=turn(f.R0), normal=turn(f.normal), rays0=None) for f in feats]
     t = slam.template_px

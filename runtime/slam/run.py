@@ -420,10 +420,7 @@ def run_slam(seq_path: str | Path, out: str | Path, max_frames: int | None = Non
             print("slam: " + imu_scale["said"] if imu_scale is not None else
                   "slam: the IMU cannot give the scale (too short a run): the scale stays arbitrary")
     if times:
-        T = np.array(poses)
-        if slam.scale_source == "imu":
-            T[:, :3, :3] = R_out @ T[:, :3, :3]
-            T[:, :3, 3] = s_out * T[:, :3, 3] @ R_out.T
+        T = map_io.similar_poses(np.array(poses), R_out, s_out) if slam.scale_source == "imu" else np.array(poses)
         write_trajectory(out / "trajectory.tum", np.array(times), T,
                          header="MonoSLAM camera-to-world poses (optical frame), TUM order")
         if log is not None:
