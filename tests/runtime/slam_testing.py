@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from kinematics.camera import CameraIntrinsics, project, unproject
+from runtime.slam.features import FEATURE_DIMS, INVERSE_DEPTH, inverse_depth
 from runtime.slam.quaternion import quat_left_matrix
 from runtime.slam.state import CAMERA_DIM, Q_SLICE, R_SLICE, V_SLICE, W_SLICE
 
@@ -25,6 +26,18 @@ CAMERAS = {
     "radial-sqrt": CameraIntrinsics(width=320, height=240, fx=195.0, fy=195.0, cx=162.0, cy=125.0,
                                     model="radial-sqrt", kd1=9e-7),
 }
+
+
+# -- maps --------------------------------------------------------------------------------------
+def feature_points(y: np.ndarray, kinds: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """(N, 3) each feature's point from the features' state ``y`` (an inverse-depth feature's
+    through its conversion, at whatever depth it has: no clamp, unlike the map's own view)."""
+    out, i = [], 0
+    for kind, A in zip(kinds, anchors):
+        d = int(FEATURE_DIMS[kind])
+        out.append(inverse_depth.to_point(y[i:i + d], A)[0] if kind == INVERSE_DEPTH else y[i:i + d])
+        i += d
+    return np.array(out)
 
 
 # -- rotations ---------------------------------------------------------------------------------

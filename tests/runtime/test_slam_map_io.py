@@ -15,6 +15,7 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
+import slam_testing
 import test_slam_startup as su
 from kinematics.camera import CameraIntrinsics
 from runtime.sequence import Target
@@ -265,15 +266,6 @@ def test_a_map_saved_through_a_similarity_is_the_same_map_in_the_new_world(slam,
     st = slam.state
     assert saved.scale == slam.scale_source == "target"
 
-    def points(y, kinds, anchors):
-        out, i = [], 0
-        for kind, A in zip(kinds, anchors):
-            d = 3 if kind == POINT else 6
-            yk = y[i:i + d]
-            out.append(yk if kind == POINT else inverse_depth.to_point(yk, A)[0])
-            i += d
-        return np.array(out)
-
     def covariances(y, P, kinds, anchors):
         out, i = [], 0
         for kind, A in zip(kinds, anchors):
@@ -284,8 +276,9 @@ def test_a_map_saved_through_a_similarity_is_the_same_map_in_the_new_world(slam,
         return np.array(out)
 
     cd = st.cam_dim
-    before = points(st.x[cd:], st.kinds, st.anchors)
-    np.testing.assert_allclose(points(saved.y, saved.kinds, saved.anchors), s * before @ R.T, atol=1e-9)
+    before = slam_testing.feature_points(st.x[cd:], st.kinds, st.anchors)
+    np.testing.assert_allclose(slam_testing.feature_points(saved.y, saved.kinds, saved.anchors), s * before @ R.T,
+                               atol=1e-9)
     C0 = covariances(st.x[cd:], st.P[cd:, cd:], st.kinds, st.anchors)
     C1 = covariances(saved.y, saved.P, saved.kinds, saved.anchors)
     np.testing.assert_allclose(C1, s**2 * np.einsum("ij,njk,lk->nil", R, C0, R), rtol=1e-9, atol=1e-15)

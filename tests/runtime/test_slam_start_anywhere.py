@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+import slam_testing
 from runtime.eval import trajectory_errors
 from runtime.sequence import open_sequence, read_trajectory
 from runtime.slam.config import MapSettings
@@ -71,15 +72,9 @@ def test_a_map_the_imu_scaled_is_saved_in_metres(walk, tmp_path):
     assert totals["scale"] == "imu" and r.lost_frames == 0
     saved = load_map(tmp_path / "m.npz")
     assert saved.scale == "imu"
-    from runtime.slam.features import INVERSE_DEPTH, inverse_depth
-
     rows = np.genfromtxt(tmp_path / "out" / "map.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
-    pts, i = [], 0
-    for kind, A in zip(saved.kinds, saved.anchors):
-        d = 6 if kind == INVERSE_DEPTH else 3
-        pts.append(inverse_depth.to_point(saved.y[i:i + d], A)[0] if kind == INVERSE_DEPTH else saved.y[i:i + d])
-        i += d
-    np.testing.assert_allclose(np.array(pts), np.column_stack([rows["x"], rows["y"], rows["z"]]), atol=1e-9)
+    np.testing.assert_allclose(slam_testing.feature_points(saved.y, saved.kinds, saved.anchors),
+                               np.column_stack([rows["x"], rows["y"], rows["z"]]), atol=1e-9)
     # The last pose is the trajectory's, which is in metres (the similarity onto the truth is ~1).
     traj = read_trajectory(tmp_path / "out" / "trajectory.tum")
     np.testing.assert_allclose(saved.T_world_cam[:3, 3], traj.p_world_cam[-1], atol=1e-6)
